@@ -1,0 +1,450 @@
+"""ManiSkill 3 tasks as native TorchRL environments.
+
+ManiSkill returns batched torch tensors (``[num_envs, ...]``) on the simulation
+device; :class:`ManiSkillWrapper` puts them into TensorDicts as they are: no
+numpy round trips, no host copies, one TensorDict built per step.
+"""
+from __future__ import annotations
+
+import importlib.util
+from collections.abc import Mapping
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Composite
+from torchrl.data.utils import DEVICE_TYPING
+from torchrl.envs.common import _EnvWrapper
+from torchrl.envs.utils import _classproperty
+
+from maniskill_torchrl.specs import (
+    done_spec,
+    info_spec_from_infos,
+    observation_spec_from_space,
+    reward_spec,
+    space_to_spec,
+)
+
+__all__ = ["ManiSkillWrapper", "ManiSkillEnv"]
+
+_has_maniskill = importlib.util.find_spec("mani_skill") is not None
+
+_CPU_BACKENDS = ("cpu", "physx_cpu")
+
+
+def _maniskill_base_env(env: Any):
+    """The ManiSkill ``BaseEnv`` under ``env`` (through any gym wrappers), or ``None``."""
+    from mani_skill.envs.sapien_env import BaseEnv
+
+    base = getattr(env, "unwrapped", None)
+    return base if isinstance(base, BaseEnv) else None
+
+
+def _wrapper_attr(env: Any, name: str) -> Any:
+    """An attribute from the outermost gym wrapper that defines it (ManiSkill's wrappers may override spaces)."""
+    get = getattr(env, "get_wrapper_attr", None)
+    return get(name) if get is not None else getattr(env, name)
+
+
+class ManiSkillWrapper(_EnvWrapper):
+    """A TorchRL env around a ManiSkill 3 env made with ``gym.make``.
+
+    The batch is ManiSkill's ``num_envs`` and the device is the simulation's
+    device (``cpu`` for the CPU sim, ``cuda`` for the GPU sim). Each step
+    builds one TensorDict from ManiSkill's own tensors:
+
+    - a Box observation space goes to ``"observation"``; a Dict observation
+      space (``state_dict``, ``rgb``, ``rgbd``, ``sensor_data``...) keeps its
+      nested key paths and dtypes (images stay uint8);
+    - a Box action space reads ``"action"``; a Dict action space (multi-agent
+      tasks such as TwoRobotPickCube-v1) reads ``("action", <agent>)`` entries;
+    - ``reward`` is ``[B, 1]`` float32; ``terminated`` / ``truncated`` /
+      ``done`` are ``[B, 1]`` bool (truncation is ManiSkill's time limit);
+    - the task's tensor infos (``success``, ``fail``, ``elapsed_steps``...) are
+      top-level entries declared in the observation spec, so collectors and
+      batched envs keep them. They are learnt from ``env.unwrapped.get_info()``
+      without stepping or resetting the env. An info key that collides with an
+      observation key is stored as ``"info_<key>"``.
+
+    Seeding: after :meth:`set_seed(s) <set_seed>` the next full reset calls
+    ManiSkill's ``reset(seed=s)``; every later full reset is seeded with the next
+    draw of ``numpy.random.RandomState(s)``, so a whole run is reproducible
+    from ``s``. ``env.reset(seed=s)`` seeds one reset directly. Partial resets
+    (a ``"_reset"`` mask that is not all True, GPU sim only) reset only those
+    envs through ``options={"env_idx": ...}`` and are not seeded.
+
+    Partial steps: ManiSkill steps all of its envs together, so a ``"_step"``
+    mask is not honoured by this env (use a :class:`~torchrl.envs.ParallelEnv`
+    of single CPU envs for that).
+
+    Args:
+        env: a ManiSkill env, ``gym.make("PickCube-v1", ...)``, possibly
+            wrapped in further gym wrappers.
+
+    Keyword Args:
+        device: must be the env's device if given (no silent copies).
+        from_pixels (bool): add a ``"pixels"`` entry rendered with
+            ``env.render()`` at every reset and step; the env must have been
+            made with ``render_mode="rgb_array"``.
+        pixels_only (bool): keep only ``"pixels"`` as observation.
+        info_keys (list of str, optional): the info entries to keep; defaults to
+            every tensor entry of ``env.unwrapped.get_info()``.
+        allow_done_after_reset (bool): passed to :class:`~torchrl.envs.EnvBase`.
+
+    Examples:
+        >>> import gymnasium as gym
+        >>> import mani_skill.envs  # registers the tasks
+        >>> from maniskill_torchrl import ManiSkillWrapper
+        >>> env = ManiSkillWrapper(gym.make("PickCube-v1", num_envs=1, obs_mode="state"))
+        >>> env.set_seed(0)
+        >>> td = env.rollout(3)
+        >>> td["next", "observation"].shape, td["next", "success"].shape
+        (torch.Size([1, 3, 42]), torch.Size([1, 3]))
+    """
+
+    git_url = "https://github.com/haosulab/ManiSkill"
+    libname = "mani_skill"
+
+    @_classproperty
+    def available_envs(cls) -> list[str]:
+        if not _has_maniskill:
+            return []
+        from mani_skill.utils.registration import REGISTERED_ENVS
+
+        return sorted(REGISTERED_ENVS)
+
+    @_classproperty
+    def lib(cls):
+        import mani_skill
+
+        return mani_skill
+
+    def __init__(
+        self,
+        env: Any = None,
+        *,
+        device: DEVICE_TYPING | None = None,
+        from_pixels: bool = False,
+        pixels_only: bool = False,
+        info_keys: list[str] | None = None,
+        allow_done_after_reset: bool = False,
+        **kwargs,
+    ) -> None:
+        if env is None:
+            raise TypeError(
+                "ManiSkillWrapper needs a ManiSkill env: ManiSkillWrapper(gym.make('PickCube-v1')) "
+                "or ManiSkillEnv('PickCube-v1')."
+            )
+        base = _maniskill_base_env(env)
+        if base is None:
+            raise TypeError(
+                f"ManiSkillWrapper wraps ManiSkill 3 envs only, got {type(env).__name__} "
+                f"(unwrapped: {type(getattr(env, 'unwrapped', env)).__name__}). Make one with "
+                "gym.make('<Task>-v1', ...) after `import mani_skill.envs`; for other gym envs use "
+                "torchrl.envs.GymWrapper."
+            )
+        env_device = torch.device(base.device)
+        if device is not None and torch.device(device) != env_device:
+            raise ValueError(
+                f"device={device} differs from the ManiSkill env's device {env_device}. "
+                "Make the env on the device you want (sim_backend='gpu' for CUDA) or omit device: "
+                "this wrapper does not copy data between devices."
+            )
+        if pixels_only and not from_pixels:
+            raise ValueError("pixels_only=True needs from_pixels=True.")
+        if from_pixels and base.render_mode != "rgb_array":
+            raise ValueError(
+                "from_pixels=True needs an env made with render_mode='rgb_array' "
+                f"(got render_mode={base.render_mode!r})."
+            )
+        self._from_pixels = bool(from_pixels)
+        self._pixels_only = bool(pixels_only)
+        self._requested_info_keys = info_keys
+        self._seed_rng: np.random.RandomState | None = None
+        self._next_seed: int | None = None
+        super().__init__(
+            env=env,
+            device=env_device,
+            batch_size=torch.Size([base.num_envs]),
+            allow_done_after_reset=allow_done_after_reset,
+            **kwargs,
+        )
+
+    # ------------------------------------------------------------------ build
+    def _check_kwargs(self, kwargs: dict) -> None:
+        if "env" not in kwargs:
+            raise TypeError("Expected an 'env' keyword argument.")
+
+    def _build_env(self, env: Any, **kwargs) -> Any:
+        if kwargs:
+            raise TypeError(f"Unexpected arguments for ManiSkillWrapper: {sorted(kwargs)}")
+        return env
+
+    def _init_env(self) -> None:
+        return None
+
+    @property
+    def base_env(self):
+        """The ManiSkill ``BaseEnv`` (``env.unwrapped``)."""
+        return self._env.unwrapped
+
+    @property
+    def gpu_sim_enabled(self) -> bool:
+        return bool(self._env.unwrapped.gpu_sim_enabled)
+
+    def _make_specs(self, env: Any) -> None:
+        base = env.unwrapped
+        batch, device = self.batch_size, self.device
+        obs_space = _wrapper_attr(env, "single_observation_space")
+        act_space = _wrapper_attr(env, "single_action_space")
+
+        obs_spec = observation_spec_from_space(obs_space, batch, device)
+        self._obs_is_dict = isinstance(obs_space, gym.spaces.Dict)
+        if self._pixels_only:
+            obs_spec = Composite(shape=batch, device=device)
+        if self._from_pixels:
+            obs_spec["pixels"] = self._pixels_spec(base)
+
+        # Info keys come from get_info(): a probe step or reset would change what later seeded resets give.
+        infos = base.get_info()
+        if self._requested_info_keys is not None:
+            missing = [k for k in self._requested_info_keys if k not in infos]
+            if missing:
+                raise ValueError(
+                    f"info_keys {missing} are not reported by {base.spec.id if base.spec else base}: "
+                    f"available info keys are {sorted(infos)}."
+                )
+            infos = {k: infos[k] for k in self._requested_info_keys}
+        info_spec = info_spec_from_infos(infos, batch, device)
+        reserved = set(obs_spec.keys()) | {"reward", "done", "terminated", "truncated", "action"}
+        self._info_map: list[tuple[str, str]] = []
+        for key in info_spec.keys():
+            td_key = f"info_{key}" if key in reserved else key
+            obs_spec[td_key] = info_spec[key]
+            self._info_map.append((key, td_key))
+
+        action_spec = space_to_spec(act_space, batch, device)
+        self._action_names = (
+            list(act_space.spaces.keys()) if isinstance(act_space, gym.spaces.Dict) else None
+        )
+        self._action_shapes = (
+            {k: action_spec[k].shape for k in self._action_names}
+            if self._action_names is not None
+            else action_spec.shape
+        )
+        self.observation_spec = obs_spec
+        self.full_action_spec = Composite(action=action_spec, shape=batch, device=device)
+        self.reward_spec = reward_spec(batch, device)
+        self.done_spec = done_spec(batch, device)
+
+    def _pixels_spec(self, base) -> Bounded:
+        configs = getattr(base, "_human_render_camera_configs", {}) or {}
+        if len(configs) == 1:
+            (cfg,) = configs.values()
+            shape = (cfg.height, cfg.width, 3)
+        else:
+            # Several cameras are tiled by ManiSkill: only a render tells the layout. Rendering does not step.
+            shape = tuple(self._render_batched(base.render()).shape[1:])
+        return Bounded(
+            low=0,
+            high=255,
+            shape=self.batch_size + torch.Size(shape),
+            dtype=torch.uint8,
+            device=self.device,
+        )
+
+    # ------------------------------------------------------------------ data
+    def _render_batched(self, frame: Any) -> torch.Tensor:
+        frame = torch.as_tensor(frame, device=self.device)
+        if frame.ndim == 3:
+            frame = frame.unsqueeze(0)
+        return frame
+
+    def _to_tensordict(self, obs: Any, info: Mapping[str, Any]) -> dict:
+        if self._pixels_only:
+            source = {}
+        elif self._obs_is_dict:
+            source = dict(obs)
+        else:
+            source = {"observation": obs}
+        # Info tensors may alias ManiSkill's buffers (elapsed_steps is updated in place): clone them.
+        for key, td_key in self._info_map:
+            source[td_key] = info[key].clone()
+        if self._from_pixels:
+            source["pixels"] = self._render_batched(self._env.render())
+        return source
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = tensordict.get("action")
+        if self._action_names is None:
+            if action.shape != self._action_shapes:
+                raise ValueError(
+                    f"ManiSkill action of shape {tuple(action.shape)}, expected "
+                    f"{tuple(self._action_shapes)} ([num_envs, *single_action_space.shape])."
+                )
+        else:
+            action = {k: action.get(k) for k in self._action_names}
+            for k, a in action.items():
+                if a.shape != self._action_shapes[k]:
+                    raise ValueError(
+                        f"ManiSkill action {k!r} of shape {tuple(a.shape)}, expected "
+                        f"{tuple(self._action_shapes[k])}."
+                    )
+        obs, reward, terminated, truncated, info = self._env.step(action)
+        source = self._to_tensordict(obs, info)
+        shape = self._done_shape
+        terminated = terminated.view(shape)
+        truncated = truncated.view(shape)
+        source["reward"] = reward.view(shape)
+        source["terminated"] = terminated
+        source["truncated"] = truncated
+        source["done"] = terminated | truncated
+        return TensorDict._new_unsafe(source, batch_size=self.batch_size, device=self.device)
+
+    @property
+    def _done_shape(self) -> torch.Size:
+        shape = self.__dict__.get("_done_shape_val")
+        if shape is None:
+            shape = self._done_shape_val = self.batch_size + (1,)
+        return shape
+
+    def _reset(
+        self,
+        tensordict: TensorDictBase | None = None,
+        *,
+        seed: int | None = None,
+        options: dict | None = None,
+        **kwargs,
+    ) -> TensorDictBase:
+        if kwargs:
+            raise TypeError(f"Unexpected reset arguments: {sorted(kwargs)}")
+        options = dict(options) if options else {}
+        reset = tensordict.get("_reset", None) if tensordict is not None else None
+        if reset is not None:
+            reset = reset.reshape(self.batch_size)
+            if not reset.any():
+                return tensordict.exclude("_reset")
+            if not reset.all():
+                options["env_idx"] = reset.nonzero().squeeze(-1)
+        if "env_idx" not in options:
+            if seed is not None:
+                self._set_seed(seed)
+            seed = self._draw_seed()
+        obs, info = self._env.reset(seed=seed, options=options)
+        source = self._to_tensordict(obs, info)
+        return TensorDict._new_unsafe(source, batch_size=self.batch_size, device=self.device)
+
+    # --------------------------------------------------------------- seeding
+    def _set_seed(self, seed: int | None) -> None:
+        if seed is None:
+            self._seed_rng = self._next_seed = None
+            return
+        seed = int(seed)
+        self._next_seed = seed
+        self._seed_rng = np.random.RandomState(seed % 2**32)
+
+    def _draw_seed(self) -> int | None:
+        if self._seed_rng is None:
+            return None
+        if self._next_seed is not None:
+            seed, self._next_seed = self._next_seed, None
+            return seed
+        return int(self._seed_rng.randint(2**31))
+
+    # -------------------------------------------------------------- misc
+    def render(self) -> Any:
+        """ManiSkill's ``render()`` (batched ``[B, H, W, 3]`` uint8 tensor for ``rgb_array``)."""
+        return self._env.render()
+
+    def close(self, *, raise_if_closed: bool = True) -> None:
+        env = self.__dict__.get("_env")
+        if env is not None:
+            env.close()
+        super().close(raise_if_closed=raise_if_closed)
+
+    def __repr__(self) -> str:
+        spec = getattr(self._env.unwrapped, "spec", None)
+        name = spec.id if spec is not None else type(self._env.unwrapped).__name__
+        return (
+            f"{type(self).__name__}(env={name}, num_envs={self.batch_size[0]}, "
+            f"device={self.device}, gpu_sim={self.gpu_sim_enabled})"
+        )
+
+
+class ManiSkillEnv(ManiSkillWrapper):
+    """Makes a ManiSkill task with ``gym.make`` and wraps it as a TorchRL env.
+
+    Args:
+        env_id (str): a registered ManiSkill task, e.g. ``"PickCube-v1"``.
+
+    Keyword Args:
+        num_envs (int): parallel envs in one simulator. The CPU sim holds one;
+            for several CPU envs use ``ParallelEnv(n, lambda: ManiSkillEnv(...))``.
+        from_pixels (bool): add ``"pixels"`` (sets ``render_mode="rgb_array"``).
+        pixels_only, info_keys, device, allow_done_after_reset: as in
+            :class:`ManiSkillWrapper`.
+        **maniskill_kwargs: passed to ``gym.make`` (``obs_mode``,
+            ``control_mode``, ``sim_backend``, ``render_mode``,
+            ``max_episode_steps``...).
+
+    Examples:
+        >>> from maniskill_torchrl import ManiSkillEnv
+        >>> env = ManiSkillEnv("PickCube-v1", obs_mode="state_dict")
+        >>> env.observation_spec["agent", "qpos"].shape
+        torch.Size([1, 9])
+        >>> td = env.rand_step(env.reset())
+        >>> td["next", "reward"].shape
+        torch.Size([1, 1])
+    """
+
+    def __init__(
+        self,
+        env_id: str,
+        *,
+        num_envs: int = 1,
+        device: DEVICE_TYPING | None = None,
+        from_pixels: bool = False,
+        pixels_only: bool = False,
+        info_keys: list[str] | None = None,
+        allow_done_after_reset: bool = False,
+        **maniskill_kwargs,
+    ) -> None:
+        import mani_skill.envs  # noqa: F401  (registers the tasks)
+        from mani_skill.utils.registration import REGISTERED_ENVS
+
+        if env_id not in REGISTERED_ENVS:
+            close = [e for e in sorted(REGISTERED_ENVS) if env_id.split("-")[0].lower() in e.lower()]
+            raise ValueError(
+                f"Unknown ManiSkill env id {env_id!r}. "
+                + (f"Did you mean one of {close[:5]}? " if close else "")
+                + "ManiSkillEnv.available_envs lists the registered tasks."
+            )
+        if not isinstance(num_envs, int) or num_envs < 1:
+            raise ValueError(f"num_envs must be a positive int, got {num_envs!r}.")
+        backend = str(maniskill_kwargs.get("sim_backend", "auto")).lower()
+        if num_envs > 1 and (
+            backend in _CPU_BACKENDS or (backend == "auto" and not torch.cuda.is_available())
+        ):
+            raise ValueError(
+                f"num_envs={num_envs} needs ManiSkill's GPU sim, but this env would run on the CPU sim, "
+                "which holds one env per process. Use a TorchRL batched env of single envs instead: "
+                f"ParallelEnv({num_envs}, lambda: TransformedEnv(ManiSkillEnv({env_id!r}), CPUUnbatch()))."
+            )
+        if from_pixels:
+            maniskill_kwargs.setdefault("render_mode", "rgb_array")
+        self._env_id = env_id
+        env = gym.make(env_id, num_envs=num_envs, **maniskill_kwargs)
+        super().__init__(
+            env,
+            device=device,
+            from_pixels=from_pixels,
+            pixels_only=pixels_only,
+            info_keys=info_keys,
+            allow_done_after_reset=allow_done_after_reset,
+        )
+
+    @property
+    def env_id(self) -> str:
+        return self._env_id
