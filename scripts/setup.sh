@@ -1,0 +1,154 @@
+#!/usr/bin/env bash
+# Idempotent developer set-up for maniskill_torchrl.
+#
+#   bash scripts/setup.sh        (or: make setup)
+#
+# 1. Creates .venv at the repo root (python3 -m venv) if missing.
+# 2. Installs torch==2.13.0 (pinned; the CPU wheel comes from the pip
+#    config's find-links), then `pip install -e ".[test,demo]"`.
+#    The installed torch is passed to pip as a constraint, so pip can never
+#    swap it for an unpinned (multi-GB CUDA) torch.
+# 3. Checks that SAPIEN finds a Vulkan device (ManiSkill 3 needs one even for
+#    state observations). On Debian bookworm as root it installs Mesa
+#    lavapipe from bookworm-backports when none is found.
+#
+# A stamp (.venv/.setup-stamp, sha256 of pyproject.toml + this script) skips
+# pip entirely when nothing changed; a successful Vulkan probe is cached in
+# .venv/.vulkan-ok.
+#
+# Environment knobs:
+#   MANISKILL_TORCHRL_SKIP_TORCH=1     don't install torch (bring your own, e.g.
+#                                      a CUDA build, installed into .venv first)
+#   MANISKILL_TORCHRL_NO_APT=1         never touch apt; just print instructions
+#   MANISKILL_TORCHRL_FORCE_VULKAN_PROBE=1   ignore the cached Vulkan probe
+#   PYTHON=python3.X                   interpreter used to create .venv
+set -euo pipefail
+
+cd "$(dirname "${BASH_SOURCE[0]}")/.."
+
+VENV=.venv
+PY="$VENV/bin/python"
+STAMP="$VENV/.setup-stamp"
+VULKAN_STAMP="$VENV/.vulkan-ok"
+TORCH_PIN="torch==2.13.0"
+
+log() { echo "setup: $*"; }
+# pip, minus the noise about file:// index locations that don't exist here.
+pip_q() {
+    "$PY" -m pip -q "$@" 2>&1 |
+        { grep -v "^WARNING: Location 'file://.*' is ignored: it is neither a file nor a directory" || true; }
+}
+die() { echo "setup: ERROR: $*" >&2; exit 1; }
+
+# ---------------------------------------------------------------- venv + pip
+if [[ ! -x "$PY" ]]; then
+    log "creating $VENV"
+    "${PYTHON:-python3}" -m venv "$VENV"
+fi
+
+want_hash="$(sha256sum pyproject.toml scripts/setup.sh | sha256sum | cut -d' ' -f1)"
+have_hash="$(cat "$STAMP" 2>/dev/null || true)"
+
+if [[ "$want_hash" == "$have_hash" ]]; then
+    pip_done=0
+else
+    rm -f "$STAMP" "$VULKAN_STAMP"
+    if "$PY" -c "import torch" >/dev/null 2>&1; then
+        log "torch already in $VENV ($("$PY" -c 'import torch; print(torch.__version__)')), not reinstalling"
+    elif [[ "${MANISKILL_TORCHRL_SKIP_TORCH:-0}" == 1 ]]; then
+        die "MANISKILL_TORCHRL_SKIP_TORCH=1 but torch is not importable in $VENV;" \
+            "install your torch first: $PY -m pip install torch ... (or unset the variable)"
+    else
+        log "installing $TORCH_PIN"
+        pip_q install "$TORCH_PIN"
+    fi
+
+    # Pin whatever torch is now installed so the resolver cannot replace it.
+    constraints="$(mktemp)"
+    trap 'rm -f "$constraints"' EXIT
+    "$PY" -c 'import torch; print("torch==" + torch.__version__)' >"$constraints"
+
+    log "installing maniskill_torchrl (editable, extras: test, demo)"
+    pip_q install -c "$constraints" -e ".[test,demo]"
+    echo "$want_hash" >"$STAMP"
+    pip_done=1
+fi
+
+# -------------------------------------------------------------------- Vulkan
+# Exit codes: 0 = device found, 2 = no rendering device, 3 = sapien broken.
+vulkan_probe() {
+    local out rc=0
+    out="$(timeout 120 "$PY" - 2>&1 <<'EOF'
+import sys
+try:
+    import sapien
+except Exception as e:
+    print(f"cannot import sapien: {e!r}")
+    sys.exit(3)
+try:
+    sapien.render.RenderSystem()
+except Exception as e:
+    print(f"{type(e).__name__}: {e}")
+    sys.exit(2)
+EOF
+)" || rc=$?
+    if [[ $rc -ne 0 && -n "$out" ]]; then
+        printf '%s\n' "$out" | tail -n 5 | sed 's/^/setup:   probe: /' >&2
+    fi
+    return "$rc"
+}
+
+if [[ "${MANISKILL_TORCHRL_FORCE_VULKAN_PROBE:-0}" == 1 ]]; then
+    rm -f "$VULKAN_STAMP"
+fi
+
+if [[ -f "$VULKAN_STAMP" ]]; then
+    [[ $pip_done == 1 ]] || log "up to date"
+    exit 0
+fi
+
+log "probing for a Vulkan device"
+rc=0
+vulkan_probe || rc=$?
+if [[ $rc -eq 3 ]]; then
+    die "sapien is not importable in $VENV (see above); try 'make clean setup'"
+elif [[ $rc -ne 0 && $rc -ne 2 ]]; then
+    die "Vulkan probe crashed or timed out (exit $rc)"
+fi
+
+if [[ $rc -eq 2 ]]; then
+    log "no usable Vulkan device (ManiSkill needs one, even for state observations)"
+    codename="$(. /etc/os-release 2>/dev/null && echo "${VERSION_CODENAME:-}")" || codename=""
+    if [[ "$(id -u)" -eq 0 && "$codename" == bookworm && "${MANISKILL_TORCHRL_NO_APT:-0}" != 1 ]]; then
+        if grep -rqsE '^[^#]*bookworm-backports' /etc/apt/sources.list /etc/apt/sources.list.d/; then
+            log "bookworm-backports already in apt sources"
+        else
+            log "adding bookworm-backports to /etc/apt/sources.list.d/backports.sources"
+            cat >/etc/apt/sources.list.d/backports.sources <<'EOF'
+Types: deb
+URIs: http://deb.debian.org/debian
+Suites: bookworm-backports
+Components: main
+Signed-By: /usr/share/keyrings/debian-archive-keyring.gpg
+EOF
+        fi
+        log "installing Mesa lavapipe from bookworm-backports (apt-get)"
+        apt-get update -q
+        DEBIAN_FRONTEND=noninteractive apt-get install -y -q \
+            -t bookworm-backports mesa-vulkan-drivers libvulkan1
+        log "re-probing for a Vulkan device"
+        rc=0
+        vulkan_probe || rc=$?
+        [[ $rc -eq 0 ]] || die "still no usable Vulkan device after installing" \
+            "bookworm-backports mesa-vulkan-drivers (probe exit $rc, see above)"
+    else
+        die "no usable Vulkan device. Install Mesa >= 24.3 lavapipe" \
+            "(Debian/Ubuntu: 'apt-get install mesa-vulkan-drivers libvulkan1';" \
+            "on Debian bookworm use '-t bookworm-backports', its own Mesa 22.3 is too old)" \
+            "or a GPU driver with Vulkan support, then re-run 'make setup'."
+    fi
+fi
+
+date -u +%FT%TZ >"$VULKAN_STAMP"
+log "Vulkan device OK"
+[[ $pip_done == 0 ]] || log "done"
