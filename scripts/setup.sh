@@ -40,6 +40,8 @@ pip_q() {
 }
 die() { echo "setup: ERROR: $*" >&2; exit 1; }
 
+torch_version() { "$PY" -c 'import importlib.metadata as m; print(m.version("torch"))'; }
+
 # ---------------------------------------------------------------- venv + pip
 if [[ ! -x "$PY" ]]; then
     log "creating $VENV"
@@ -54,7 +56,7 @@ if [[ "$want_hash" == "$have_hash" ]]; then
 else
     rm -f "$STAMP" "$VULKAN_STAMP"
     if "$PY" -c "import torch" >/dev/null 2>&1; then
-        log "torch already in $VENV ($("$PY" -c 'import torch; print(torch.__version__)')), not reinstalling"
+        log "torch $(torch_version) already in $VENV, not reinstalling"
     elif [[ "${MANISKILL_TORCHRL_SKIP_TORCH:-0}" == 1 ]]; then
         die "MANISKILL_TORCHRL_SKIP_TORCH=1 but torch is not importable in $VENV;" \
             "install your torch first: $PY -m pip install torch ... (or unset the variable)"
@@ -66,7 +68,7 @@ else
     # Pin whatever torch is now installed so the resolver cannot replace it.
     constraints="$(mktemp)"
     trap 'rm -f "$constraints"' EXIT
-    "$PY" -c 'import torch; print("torch==" + torch.__version__)' >"$constraints"
+    echo "torch==$(torch_version)" >"$constraints"
 
     log "installing maniskill_torchrl (editable, extras: test, demo)"
     pip_q install -c "$constraints" -e ".[test,demo]"
