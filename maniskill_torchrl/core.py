@@ -82,7 +82,8 @@ def _where(mask: torch.Tensor, a: TensorDictBase, b: TensorDictBase) -> TensorDi
     def fn(x, y):
         return torch.where(_expand_mask(mask, x), x, y)
 
-    return a._fast_apply(fn, b, batch_size=a.batch_size, default=None, filter_empty=True)
+    # No batch_size here: it would flatten nested batch dims (multi-agent [B, n_agents] sub-tds).
+    return a._fast_apply(fn, b, default=None, filter_empty=True)
 
 
 # ----------------------------------------------------------------------------- return
