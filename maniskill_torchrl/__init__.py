@@ -6,7 +6,8 @@
 - :mod:`maniskill_torchrl.wrappers`: drop-in ``CPUGymWrapper`` / ``ActionRepeatWrapper``.
 """
 from maniskill_torchrl.env import ManiSkillEnv, ManiSkillWrapper
+from maniskill_torchrl.transforms import ActionRepeat
 
 __version__ = "0.1.0"
 
-__all__ = ["ManiSkillEnv", "ManiSkillWrapper", "__version__"]
+__all__ = ["ActionRepeat", "ManiSkillEnv", "ManiSkillWrapper", "__version__"]

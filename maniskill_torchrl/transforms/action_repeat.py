@@ -1,0 +1,151 @@
+"""Masked action repeat as a TorchRL transform."""
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.envs import EnvBase, Transform, TransformedEnv
+from torchrl.envs.batched_envs import BatchedEnvBase
+
+from maniskill_torchrl.core import any_done, merge_step
+
+__all__ = ["ActionRepeat"]
+
+
+class ActionRepeat(Transform):
+    """Repeats each action up to ``repeat`` times, per env, never past an episode's end.
+
+    Per outer step the parent env (the env with the transforms placed before
+    this one) is stepped up to ``repeat`` times with the same action. For each
+    env of the batch:
+
+    - every reward entry is the sum over the inner steps the env really took;
+    - ``terminated`` / ``truncated`` / ``done`` (every done entry) are OR'ed;
+    - every other ``"next"`` entry (observations at any depth, infos such as
+      ``success`` / ``elapsed_steps``) comes from its last real inner step: an
+      env that ends at inner step ``k`` keeps step ``k``'s data.
+
+    The inner loop stops as soon as every env is done. Reward and done entries
+    are the parent's ``reward_keys`` / ``done_keys``, nested and multi-agent
+    ones included; an env counts as done when any of its done entries is True.
+
+    Envs that have ended are not stepped again where the parent can skip them:
+    on a :class:`~torchrl.envs.SerialEnv` / :class:`~torchrl.envs.ParallelEnv`
+    the extra inner steps carry TorchRL's ``"_step"`` partial-step mask, so a
+    ``ParallelEnv`` of CPU ManiSkill envs spends no physics on finished envs.
+    One batch-locked simulator (:class:`~maniskill_torchrl.ManiSkillWrapper`,
+    ManiSkill's GPU sim) steps all its envs together; the results of the
+    finished ones are discarded, as ManiSkill's ``ActionRepeatWrapper`` does.
+
+    Specs are unchanged. Transforms placed before this one act on every inner
+    step (a :class:`~torchrl.envs.StepCounter` there counts inner steps: state
+    entries of the parent's ``full_state_spec`` are carried from one inner step
+    to the next); transforms placed after it see one outer step.
+
+    Unlike :class:`~torchrl.envs.FrameSkipTransform`, this transform neither
+    adds rewards from after an episode's end nor loses a termination that
+    happens mid-repeat, and it steps the parent with the input as this
+    transform sees it (the parent's own inverse transforms are applied once).
+
+    Args:
+        repeat (int): inner steps per outer step, ``>= 1``. ``repeat=1`` is a
+            plain step.
+
+    Examples:
+        >>> from torchrl.envs import TransformedEnv, StepCounter
+        >>> from maniskill_torchrl import ManiSkillEnv
+        >>> from maniskill_torchrl.transforms import ActionRepeat
+        >>> env = TransformedEnv(
+        ...     ManiSkillEnv("MS-CartpoleBalance-v1", obs_mode="state"), ActionRepeat(3)
+        ... )
+        >>> env.append_transform(StepCounter())  # counts outer steps
+        >>> td = env.rollout(4, break_when_any_done=False)
+        >>> td["next", "elapsed_steps"].squeeze(0).tolist()  # inner steps taken
+        [3, 6, 9, 12]
+        >>> td["next", "step_count"].squeeze(-1).squeeze(0).tolist()
+        [1, 2, 3, 4]
+    """
+
+    def __init__(self, repeat: int) -> None:
+        if isinstance(repeat, bool) or not isinstance(repeat, int) or repeat < 1:
+            raise ValueError(
+                f"ActionRepeat(repeat) needs an int >= 1 (the number of inner steps per step; "
+                f"1 means no repeat), got {repeat!r} of type {type(repeat).__name__}."
+            )
+        super().__init__()
+        self.repeat = repeat
+        self._stash: TensorDictBase | None = None
+        self._cache: tuple | None = None
+
+    # ------------------------------------------------------------- internals
+    def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
+        # Why: the ``tensordict`` handed to ``_step`` has been through the inverse of
+        # every transform, the parent's own included; stepping the parent with it
+        # would apply those a second time. Compose runs inverses last to first, so
+        # here only the later transforms' inverses were applied: keep this view (a
+        # shallow copy, as the earlier inverses set entries on the same object).
+        if self.repeat > 1:
+            self._stash = tensordict.exclude("next")
+        return tensordict
+
+    def _parent_info(self) -> tuple:
+        """(parent, reward keys, done keys, state keys, parent skips envs), cached per parent."""
+        parent = self.parent
+        cache = self._cache
+        if cache is not None and cache[0] is parent:
+            return cache
+        if parent is None:
+            raise RuntimeError("ActionRepeat must be used inside a TransformedEnv.")
+        base: EnvBase = parent
+        while isinstance(base, TransformedEnv):
+            base = base.base_env
+        state_keys = list(parent.full_state_spec.keys(True, True))
+        cache = self._cache = (
+            parent,
+            list(parent.reward_keys),
+            list(parent.done_keys),
+            state_keys,
+            isinstance(base, BatchedEnvBase),
+        )
+        return cache
+
+    def empty_cache(self) -> None:
+        self._cache = None
+        super().empty_cache()
+
+    def _step(
+        self, tensordict: TensorDictBase, next_tensordict: TensorDictBase
+    ) -> TensorDictBase:
+        if self.repeat == 1:
+            return next_tensordict
+        td, self._stash = self._stash, None
+        if td is None:  # _step called without the TransformedEnv's inverse pass
+            td = tensordict.exclude("next")
+        parent, reward_keys, done_keys, state_keys, partial = self._parent_info()
+        batch = parent.batch_size
+
+        running = ~any_done(next_tensordict, done_keys)
+        outer_mask = td.get("_step", None)
+        if outer_mask is not None:  # an outer partial step: skipped envs stay skipped
+            running = running & outer_mask.reshape(batch)
+        acc = next_tensordict
+        new = next_tensordict
+        for _ in range(self.repeat - 1):
+            # One host sync per inner step, as ManiSkill's wrapper does.
+            if not running.any():
+                break
+            all_running = bool(running.all())
+            if state_keys:  # e.g. a StepCounter placed before: the next inner step starts where this one ended
+                td.update(new.select(*state_keys, strict=False))
+            if partial:
+                if all_running:
+                    td.pop("_step", None)
+                else:
+                    td.set("_step", running)
+            new = parent._step(td)
+            # All envs running: a plain fold, no masking at all.
+            acc = merge_step(acc, new, None if all_running else running, reward_keys, done_keys)
+            running = running & ~any_done(new, done_keys)
+        return acc
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(repeat={self.repeat})"
