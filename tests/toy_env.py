@@ -9,13 +9,15 @@ since its last reset (``t = 1`` after the first step):
 - ``"reward"`` [*B, 1] float32: :func:`toy_reward` ``(id, t)`` (non-trivial floats);
 - ``"done"`` / ``"terminated"`` / ``"truncated"`` [*B, 1] bool: done once
   ``t >= ends[i]``, by termination where ``terminate[i]`` else by truncation.
-  Stepping past the end keeps going (``t`` grows, done stays True, rewards keep
-  coming), as a batch-locked simulator does;
+  Stepping past the end keeps going (``t`` grows, rewards keep coming), as a
+  batch-locked simulator does; done stays True, or with ``done_once=True`` is
+  True at ``t == ends[i]`` only (an event that does not persist, like a
+  success-based termination);
 - ``"observation"`` [*B, 3] float32: ``[t, id, action[0]]``;
 - ``("nested", "deep", "x")`` [*B, 2] uint8: :func:`toy_nested` ``(id, t)``;
 - ``("nested", "count")`` [*B] int64: the env's total real steps (never reset);
 - ``"elapsed_steps"`` [*B] int64: ``t``;
-- ``"success"`` [*B] bool: ``t % 3 == 2``; ``"fail"`` [*B] bool: ended by termination.
+- ``"success"`` [*B] bool: ``t % 3 == 2``; ``"fail"`` [*B] bool: ``terminated``.
 
 ``step_count`` ([*B] int64 tensor attribute) counts the real steps of every env,
 ``reset_count`` the resets (a ``"_reset"`` mask resets only those envs). The
@@ -48,10 +50,15 @@ __all__ = ["ToyEnv", "toy_reward", "toy_nested"]
 
 
 def toy_reward(env_id: torch.Tensor | int, t: torch.Tensor | int) -> torch.Tensor:
-    """The float32 reward of env ``env_id`` at its step ``t`` (1-based)."""
-    env_id = torch.as_tensor(env_id, dtype=torch.float32)
-    t = torch.as_tensor(t, dtype=torch.float32)
-    return torch.sin(0.9 * t + 1.7 * env_id) * (1.0 + 0.1 * env_id) + 0.123
+    """The float32 reward of env ``env_id`` at its step ``t`` (1-based).
+
+    An integer over 7 in float32: not exactly representable, so sums round and
+    their order matters, yet one correctly rounded division gives the same bits
+    however it is vectorised (a reference may compute it one env at a time).
+    """
+    env_id = torch.as_tensor(env_id, dtype=torch.int64)
+    t = torch.as_tensor(t, dtype=torch.int64)
+    return ((13 * t * t + 7 * env_id + 5) % 97 - 40).to(torch.float32) / 7.0
 
 
 def toy_nested(env_id: torch.Tensor | int, t: torch.Tensor | int) -> torch.Tensor:
@@ -72,6 +79,7 @@ class ToyEnv(EnvBase):
         ids: the env ids used in rewards and observations (default ``0..B-1``;
             give distinct ids to the sub-envs of a SerialEnv).
         multi_agent: reward and done flags under ``"agents"`` (see module docstring).
+        done_once: done is True at the end step only, not after it.
     """
 
     def __init__(
@@ -80,6 +88,7 @@ class ToyEnv(EnvBase):
         terminate: Sequence[bool] | bool = True,
         ids: Sequence[int] | int | None = None,
         multi_agent: bool = False,
+        done_once: bool = False,
     ) -> None:
         scalar = isinstance(ends, int)
         batch = torch.Size([]) if scalar else torch.Size([len(ends)])
@@ -90,6 +99,7 @@ class ToyEnv(EnvBase):
             ids = 0 if scalar else list(range(len(ends)))
         self.ids = torch.as_tensor(ids, dtype=torch.int64).reshape(batch)
         self.multi_agent = multi_agent
+        self.done_once = done_once
         self.t = torch.zeros(batch, dtype=torch.int64)
         self.step_count = torch.zeros(batch, dtype=torch.int64)
         self.reset_count = torch.zeros(batch, dtype=torch.int64)
@@ -126,10 +136,13 @@ class ToyEnv(EnvBase):
             self.reward_spec = Unbounded(b + (1,), dtype=torch.float32)
             self.done_spec = Composite(done=flag(), terminated=flag(), truncated=flag(), shape=b)
 
+    def _ended(self) -> torch.Tensor:
+        return self.t == self.ends if self.done_once else self.t >= self.ends
+
     def _obs(self, action: torch.Tensor | None) -> dict:
         t = self.t
         act0 = action[..., 0] if action is not None else torch.zeros(self.batch_size)
-        ended = t >= self.ends
+        ended = self._ended()
         return {
             "observation": torch.stack([t.float(), self.ids.float(), act0], -1),
             "nested": {"deep": {"x": toy_nested(self.ids, t)}, "count": self.step_count.clone()},
@@ -143,7 +156,7 @@ class ToyEnv(EnvBase):
         self.step_count = self.step_count + 1
         t = self.t
         out = self._obs(tensordict.get("action"))
-        done = (t >= self.ends).unsqueeze(-1)
+        done = self._ended().unsqueeze(-1)
         term = done & self.terminate.unsqueeze(-1)
         trunc = done & ~self.terminate.unsqueeze(-1)
         reward = toy_reward(self.ids, t).unsqueeze(-1)
@@ -185,17 +198,31 @@ class ToyEnv(EnvBase):
         return None
 
 
-def serial_toy_env(ends: Sequence[int], terminate: Sequence[bool] | bool = True, **kwargs):
-    """A ``SerialEnv`` of ``batch_size=[]`` toy envs (ids ``0..B-1``): honours partial steps."""
+def serial_toy_env(
+    ends: Sequence[int],
+    terminate: Sequence[bool] | bool = True,
+    *,
+    done_once: bool = False,
+    multi_agent: bool = False,
+    **serial_kwargs,
+):
+    """A ``SerialEnv`` of ``batch_size=[]`` toy envs (ids ``0..B-1``): honours partial steps.
+
+    The sub-envs (``env._envs[i]`` once started) hold the ``step_count`` counters.
+    """
     from torchrl.envs import SerialEnv
 
     if isinstance(terminate, bool):
         terminate = [terminate] * len(ends)
     fns = [
-        (lambda e=int(e), k=bool(k), i=i: ToyEnv(e, terminate=k, ids=i))
+        (
+            lambda e=int(e), k=bool(k), i=i: ToyEnv(
+                e, terminate=k, ids=i, done_once=done_once, multi_agent=multi_agent
+            )
+        )
         for i, (e, k) in enumerate(zip(ends, terminate))
     ]
-    return SerialEnv(len(ends), fns, **kwargs)
+    return SerialEnv(len(ends), fns, **serial_kwargs)
 
 
 if __name__ == "__main__":  # pragma: no cover
