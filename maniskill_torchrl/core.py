@@ -238,6 +238,10 @@ class EpisodeStats:
     def _add_reward(self, reward: torch.Tensor, n: torch.Tensor) -> None:
         flat_n = n.reshape(-1, 1)
         self._max_len += 1
+        if self._max_len == _PW_BLOCK + 1 or self._max_len > self._hist.shape[-1]:
+            # Masked resets leave this bound stale (it only grows): re-read the true longest
+            # episode (one sync) before taking the long path or growing the history.
+            self._max_len = int(n.max()) + 1
         if self._max_len > self._hist.shape[-1]:
             self._hist = torch.cat([self._hist, torch.zeros_like(self._hist)], -1)
         self._hist.view(-1, self._hist.shape[-1]).scatter_(1, flat_n, reward.reshape(-1, 1))
@@ -255,10 +259,12 @@ class EpisodeStats:
         long = n1 > _PW_BLOCK
         if self._max_len > _PW_BLOCK and long.any():
             total = total.clone()
-            idx = long.nonzero(as_tuple=True)
-            lens = n1[idx]
-            rows = self._hist[idx]
+            # Flat views: the batch may have any number of dims, none included.
+            flat_total = total.view(-1)
+            (idx,) = long.reshape(-1).nonzero(as_tuple=True)
+            lens = n1.reshape(-1)[idx]
+            rows = self._hist.view(-1, self._hist.shape[-1])[idx]
             for length in lens.unique().tolist():
                 sel = lens == length
-                total[tuple(i[sel] for i in idx)] = pairwise_sum(rows[sel, :length])
+                flat_total[idx[sel]] = pairwise_sum(rows[sel, :length])
         self._return = total
