@@ -6,8 +6,21 @@
 - :mod:`maniskill_torchrl.wrappers`: drop-in ``CPUGymWrapper`` / ``ActionRepeatWrapper``.
 """
 from maniskill_torchrl.env import ManiSkillEnv, ManiSkillWrapper
-from maniskill_torchrl.transforms import ActionRepeat
+from maniskill_torchrl.transforms import (
+    ActionRepeat,
+    CPUUnbatch,
+    EpisodeMetrics,
+    IgnoreTerminations,
+)
 
 __version__ = "0.1.0"
 
-__all__ = ["ActionRepeat", "ManiSkillEnv", "ManiSkillWrapper", "__version__"]
+__all__ = [
+    "ActionRepeat",
+    "CPUUnbatch",
+    "EpisodeMetrics",
+    "IgnoreTerminations",
+    "ManiSkillEnv",
+    "ManiSkillWrapper",
+    "__version__",
+]

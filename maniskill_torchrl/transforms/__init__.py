@@ -1,6 +1,12 @@
 """TorchRL transforms for ManiSkill envs."""
 from maniskill_torchrl.transforms.action_repeat import ActionRepeat
+from maniskill_torchrl.transforms.cpu_unbatch import CPUUnbatch
+from maniskill_torchrl.transforms.episode_metrics import EpisodeMetrics
+from maniskill_torchrl.transforms.terminations import IgnoreTerminations
 
 __all__ = [
     "ActionRepeat",
+    "CPUUnbatch",
+    "EpisodeMetrics",
+    "IgnoreTerminations",
 ]

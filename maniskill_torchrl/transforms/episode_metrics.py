@@ -1,0 +1,186 @@
+"""Per-env episode metrics (return, length, success / fail) as a TorchRL transform."""
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Categorical, Composite, TensorSpec, Unbounded
+from torchrl.envs import Transform
+
+from maniskill_torchrl.core import EpisodeStats
+
+__all__ = ["EpisodeMetrics"]
+
+
+class EpisodeMetrics(Transform):
+    """Records ManiSkill's standard evaluation metrics per env, under ``"episode"``.
+
+    At every step, for every env of the batch (TorchRL's counterpart of
+    ``CPUGymWrapper(env, record_metrics=True)``, and the same numbers, bit
+    for bit, on one CPU env):
+
+    - ``("episode", "return")`` float32: the sum of the episode's rewards,
+      summed as ``numpy.sum`` does;
+    - ``("episode", "episode_len")`` int64: steps since the env's reset;
+    - ``("episode", "reward")`` float32: ``return / episode_len``;
+    - ``("episode", "success_once")`` / ``("episode", "success_at_end")``
+      bool: success ever reported in the episode / reported at this step,
+      where the parent reports ``"success"`` (an entry of its observation
+      spec, as :class:`~maniskill_torchrl.ManiSkillWrapper` declares infos);
+    - ``("episode", "fail_once")`` / ``("episode", "fail_at_end")`` likewise
+      for ``"fail"``.
+
+    The entries are declared in the observation spec, so batched envs and
+    collectors keep them; each has the parent's batch shape. At reset they are
+    zeros for the envs being reset; a ``"_reset"`` mask resets only those envs
+    (partial resets of the GPU sim, or of a batched env with the transform on
+    top), the others carry on. Any batch works: one unbatched CPU env (after
+    :class:`~maniskill_torchrl.transforms.CPUUnbatch`), a ``ParallelEnv`` of
+    them, or ``num_envs`` GPU-sim envs; the statistics live on the parent's
+    device.
+
+    Add :class:`~maniskill_torchrl.transforms.IgnoreTerminations` before it
+    to measure episodes that run to the time limit (what ManiSkill's
+    evaluation does with ``ignore_terminations=True``).
+
+    Examples:
+        >>> from torchrl.envs import TransformedEnv, Compose
+        >>> from maniskill_torchrl import ManiSkillEnv
+        >>> from maniskill_torchrl.transforms import CPUUnbatch, EpisodeMetrics, IgnoreTerminations
+        >>> env = TransformedEnv(
+        ...     ManiSkillEnv("PickCube-v1", obs_mode="state", max_episode_steps=10),
+        ...     Compose(CPUUnbatch(), IgnoreTerminations(), EpisodeMetrics()),
+        ... )
+        >>> env.set_seed(0)
+        >>> td = env.rollout(10)
+        >>> td["next", "episode", "episode_len"].tolist()
+        [1, 2, 3, 4, 5, 6, 7, 8, 9, 10]
+        >>> sorted(td["next", "episode"].keys())
+        ['episode_len', 'return', 'reward', 'success_at_end', 'success_once']
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._stats: EpisodeStats | None = None
+        self._last: TensorDictBase | None = None
+
+    # ----------------------------------------------------------- set-up
+    def _flags(self) -> tuple[bool, bool]:
+        keys = self.parent.observation_spec.keys()
+        return "success" in keys, "fail" in keys
+
+    def _make_stats(self) -> EpisodeStats:
+        parent = self.parent
+        if parent is None:
+            raise RuntimeError("EpisodeMetrics needs a parent env: use it in a TransformedEnv.")
+        has_success, has_fail = self._flags()
+        self._stats = EpisodeStats(
+            parent.batch_size, parent.device, has_success=has_success, has_fail=has_fail
+        )
+        self._reward_key = parent.reward_key
+        self._reset_keys = list(parent.reset_keys)
+        self._last = None
+        return self._stats
+
+    def set_container(self, container) -> None:
+        super().set_container(container)
+        # A new parent may have another batch, device or info keys.
+        self._stats = None
+        self._last = None
+
+    def _episode_spec(self) -> Composite:
+        parent = self.parent
+        batch, device = parent.batch_size, parent.device
+        has_success, has_fail = self._flags()
+
+        def flag():
+            return Categorical(2, shape=batch, dtype=torch.bool, device=device)
+
+        spec = Composite(
+            {
+                "return": Unbounded(shape=batch, dtype=torch.float32, device=device),
+                "episode_len": Unbounded(shape=batch, dtype=torch.int64, device=device),
+                "reward": Unbounded(shape=batch, dtype=torch.float32, device=device),
+            },
+            shape=batch,
+            device=device,
+        )
+        if has_success:
+            spec["success_once"] = flag()
+            spec["success_at_end"] = flag()
+        if has_fail:
+            spec["fail_once"] = flag()
+            spec["fail_at_end"] = flag()
+        return spec
+
+    def transform_observation_spec(self, observation_spec: TensorSpec) -> TensorSpec:
+        observation_spec["episode"] = self._episode_spec()
+        return observation_spec
+
+    # ----------------------------------------------------------- data
+    def _step(
+        self, tensordict: TensorDictBase, next_tensordict: TensorDictBase
+    ) -> TensorDictBase:
+        stats = self._stats
+        if stats is None:
+            stats = self._make_stats()
+        episode = stats.update(
+            next_tensordict.get(self._reward_key),
+            next_tensordict.get("success") if stats.has_success else None,
+            next_tensordict.get("fail") if stats.has_fail else None,
+        )
+        # Kept (not copied) for partial resets; EpisodeStats never writes into returned tensors.
+        self._last = episode
+        next_tensordict.set("episode", episode)
+        return next_tensordict
+
+    def _reset_mask(self, tensordict: TensorDictBase, batch: torch.Size) -> torch.Tensor | None:
+        """Per env: whether it is being reset (``None``: all of them)."""
+        mask = None
+        for key in self._reset_keys:
+            reset = tensordict.get(key, None)
+            if reset is None:
+                return None
+            # Reset entries are [*batch, 1] (or per agent): reduce them to the env batch.
+            reset = reset.reshape(*batch, -1).any(-1)
+            mask = reset if mask is None else mask | reset
+        return mask
+
+    def _reset(
+        self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase
+    ) -> TensorDictBase:
+        stats = self._stats
+        if stats is None:
+            stats = self._make_stats()
+        mask = self._reset_mask(tensordict, stats.batch_size) if tensordict is not None else None
+        if mask is None or self._last is None:
+            stats.reset()
+            episode = self._zeros(stats)
+        else:
+            # Zeros for the envs being reset, the others keep their running values. No
+            # ``mask.all()`` shortcut: on the GPU sim it would sync the host at every reset.
+            stats.reset(mask)
+            episode = self._last.apply(
+                lambda last, zero: torch.where(mask, zero, last), self._zeros(stats)
+            )
+        self._last = episode
+        tensordict_reset.set("episode", episode)
+        return tensordict_reset
+
+    @staticmethod
+    def _zeros(stats: EpisodeStats) -> TensorDict:
+        b, dev = stats.batch_size, stats.device
+        out = {
+            "return": torch.zeros(b, dtype=torch.float32, device=dev),
+            "episode_len": torch.zeros(b, dtype=torch.int64, device=dev),
+            "reward": torch.zeros(b, dtype=torch.float32, device=dev),
+        }
+        if stats.has_success:
+            out["success_once"] = torch.zeros(b, dtype=torch.bool, device=dev)
+            out["success_at_end"] = torch.zeros(b, dtype=torch.bool, device=dev)
+        if stats.has_fail:
+            out["fail_once"] = torch.zeros(b, dtype=torch.bool, device=dev)
+            out["fail_at_end"] = torch.zeros(b, dtype=torch.bool, device=dev)
+        return TensorDict._new_unsafe(out, batch_size=b, device=dev)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}()"
