@@ -236,7 +236,8 @@ def test_parallel_env_and_collector():
         assert roll["next", "observation"].shape == torch.Size([2, 3, 42])
         assert roll["next", "episode", "episode_len"].tolist() == [[1, 2, 3]] * 2
 
-        collector = Collector(penv, None, frames_per_batch=2 * 2 * T_MAX, total_frames=4 * T_MAX)
+        # total_frames=-1: a finite run closes the env when it ends (slow: ManiSkill's close runs gc).
+        collector = Collector(penv, None, frames_per_batch=2 * 2 * T_MAX, total_frames=-1)
         try:
             data = next(iter(collector))
         finally:
