@@ -1,0 +1,206 @@
+"""Interleaved timing harness shared by the ``benchmarks/bench_*.py`` scripts.
+
+All contenders run in one process and take turns: each round runs every
+contender once, in a rotating order (round ``r`` starts with contender
+``r % n``), so slow drifts of the machine (thermal state, other processes,
+allocator warm-up) hit every contender alike. Each contender's score is the
+median over rounds of its time per unit (per env step, usually); ratios are
+taken between medians.
+
+A contender is a callable ``run() -> int`` that does one round of work and
+returns the number of units it did (or ``None`` for the ``units`` given to
+:func:`interleave`). Untimed per-round set-up (a seeded reset, say) goes into
+an optional ``setup`` callable: it runs just before the contender's timed call.
+
+Example::
+
+    from common import Contender, interleave, report
+
+    results = interleave(
+        [Contender("raw", run_raw, setup=reset_raw), Contender("wrapped", run_wrapped, setup=reset_wrapped)],
+        rounds=7,
+        warmup=1,
+    )
+    print(report(results, baseline="raw"))
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import gc
+import json
+import os
+import platform
+import statistics
+import subprocess
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+__all__ = [
+    "Contender",
+    "Result",
+    "interleave",
+    "report",
+    "ratio",
+    "machine_info",
+    "machine_line",
+    "save_json",
+]
+
+
+@dataclass
+class Contender:
+    """One thing to time: ``run()`` does one round and returns its unit count (or ``None``)."""
+
+    name: str
+    run: Callable[[], int | None]
+    setup: Callable[[], None] | None = None
+
+
+@dataclass
+class Result:
+    """Per-round times per unit (seconds) of one contender."""
+
+    name: str
+    per_unit: list[float] = field(default_factory=list)
+    units: list[int] = field(default_factory=list)
+
+    @property
+    def median(self) -> float:
+        return statistics.median(self.per_unit)
+
+    @property
+    def minimum(self) -> float:
+        return min(self.per_unit)
+
+    @property
+    def spread(self) -> float:
+        """Relative spread of the rounds: (max - min) / median."""
+        return (max(self.per_unit) - min(self.per_unit)) / self.median
+
+    def as_dict(self) -> dict:
+        return {
+            "name": self.name,
+            "median_s": self.median,
+            "min_s": self.minimum,
+            "spread": self.spread,
+            "per_unit_s": self.per_unit,
+            "units": self.units,
+        }
+
+
+def interleave(
+    contenders: Sequence[Contender],
+    *,
+    rounds: int = 7,
+    warmup: int = 1,
+    units: int | None = None,
+    gc_collect: bool = True,
+    verbose: bool = False,
+) -> dict[str, Result]:
+    """Runs the contenders round-robin for ``warmup`` untimed then ``rounds`` timed rounds.
+
+    Returns ``{name: Result}`` in the order of ``contenders``.
+    """
+    if not contenders:
+        raise ValueError("interleave() needs at least one contender.")
+    names = [c.name for c in contenders]
+    if len(set(names)) != len(names):
+        raise ValueError(f"Contender names must be unique, got {names}.")
+    results = {c.name: Result(c.name) for c in contenders}
+    n = len(contenders)
+    for r in range(warmup + rounds):
+        timed = r >= warmup
+        order = [contenders[(r + i) % n] for i in range(n)]
+        for c in order:
+            if c.setup is not None:
+                c.setup()
+            if gc_collect:
+                gc.collect()
+            t0 = time.perf_counter()
+            done = c.run()
+            dt = time.perf_counter() - t0
+            count = done if done is not None else units
+            if count is None or count <= 0:
+                raise ValueError(
+                    f"Contender {c.name!r} returned {done!r}: return the number of units done "
+                    "or pass units= to interleave()."
+                )
+            if timed:
+                results[c.name].per_unit.append(dt / count)
+                results[c.name].units.append(count)
+            if verbose:
+                tag = "round" if timed else "warmup"
+                print(f"  {tag} {r - warmup if timed else r}: {c.name:<28} {1e6 * dt / count:9.1f} us/unit")
+    return results
+
+
+def ratio(results: dict[str, Result], name: str, baseline: str) -> float:
+    """Median time per unit of ``name`` over that of ``baseline``."""
+    return results[name].median / results[baseline].median
+
+
+def report(results: dict[str, Result], *, baseline: str | None = None, unit: str = "step") -> str:
+    """A markdown table: median and min time per unit, spread over rounds, ratio to ``baseline``."""
+    if baseline is None:
+        baseline = next(iter(results))
+    rows = [
+        f"| contender | median us/{unit} | min us/{unit} | spread | ratio to {baseline} |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    for name, res in results.items():
+        rows.append(
+            f"| {name} | {1e6 * res.median:.1f} | {1e6 * res.minimum:.1f} | "
+            f"{100 * res.spread:.1f}% | {ratio(results, name, baseline):.3f}x |"
+        )
+    return "\n".join(rows)
+
+
+def _cpu_model() -> str:
+    try:
+        out = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
+        for line in out.splitlines():
+            if line.lower().startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except (OSError, subprocess.CalledProcessError):
+        pass
+    return platform.processor() or platform.machine()
+
+
+def machine_info() -> dict:
+    """CPU model, usable cores, python and library versions."""
+    info = {
+        "cpu": _cpu_model(),
+        "cores": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
+        "python": platform.python_version(),
+        "date": _dt.date.today().isoformat(),
+    }
+    for mod in ("torch", "tensordict", "torchrl", "mani_skill", "sapien", "gymnasium", "numpy"):
+        try:
+            info[mod] = __import__(mod).__version__
+        except Exception:  # noqa: BLE001 - a missing library is just not reported
+            pass
+    try:
+        import torch
+
+        info["torch_threads"] = torch.get_num_threads()
+    except ImportError:
+        pass
+    return info
+
+
+def machine_line(info: dict | None = None) -> str:
+    """One line describing the machine and versions, for RESULTS.md."""
+    info = info or machine_info()
+    libs = ", ".join(
+        f"{k} {info[k]}" for k in ("torch", "tensordict", "torchrl", "mani_skill", "sapien") if k in info
+    )
+    return f"{info['cpu']}, {info['cores']} cores, Python {info['python']}; {libs}"
+
+
+def save_json(path: str, payload: dict) -> None:
+    """Writes ``payload`` (with machine info added) as JSON, creating the folder."""
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    payload = {"machine": machine_info(), **payload}
+    with open(path, "w") as f:
+        json.dump(payload, f, indent=2, default=str)
