@@ -50,7 +50,7 @@ class EpisodeMetrics(Transform):
         ...     ManiSkillEnv("PickCube-v1", obs_mode="state", max_episode_steps=10),
         ...     Compose(CPUUnbatch(), IgnoreTerminations(), EpisodeMetrics()),
         ... )
-        >>> env.set_seed(0)
+        >>> _ = env.set_seed(0)
         >>> td = env.rollout(10)
         >>> td["next", "episode", "episode_len"].tolist()
         [1, 2, 3, 4, 5, 6, 7, 8, 9, 10]

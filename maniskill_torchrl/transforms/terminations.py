@@ -27,15 +27,14 @@ class IgnoreTerminations(Transform):
     ``truncated`` (all False where the group has none).
 
     Examples:
-        >>> from torchrl.envs import TransformedEnv
+        >>> from torchrl.envs import Compose, TransformedEnv
         >>> from maniskill_torchrl import ManiSkillEnv
         >>> from maniskill_torchrl.transforms import CPUUnbatch, IgnoreTerminations
         >>> env = TransformedEnv(
         ...     ManiSkillEnv("MS-CartpoleBalance-v1", obs_mode="state", max_episode_steps=50),
-        ...     CPUUnbatch(),
+        ...     Compose(CPUUnbatch(), IgnoreTerminations()),
         ... )
-        >>> env.append_transform(IgnoreTerminations())
-        >>> env.set_seed(0)
+        >>> _ = env.set_seed(0)
         >>> td = env.rollout(100, break_when_any_done=True)  # stops at the time limit only
         >>> td.shape, bool(td["next", "terminated"].any()), bool(td["next", "truncated"][-1])
         (torch.Size([50]), False, True)
