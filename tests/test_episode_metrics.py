@@ -230,6 +230,12 @@ def test_specs_and_no_success_fail():
     assert repr(EpisodeMetrics()) == "EpisodeMetrics()"
 
 
+def test_error_reward_per_agent():
+    env = TransformedEnv(ToyEnv([2, 3], multi_agent=True), EpisodeMetrics())
+    with pytest.raises(ValueError, match=r"one reward per env.*\('agents', 'reward'\)"):
+        env.rollout(2)
+
+
 def test_maniskill_specs(envs):
     _, ms_env = envs["PickCube-v1"]
     env = TransformedEnv(ms_env, Compose(CPUUnbatch(), EpisodeMetrics()))

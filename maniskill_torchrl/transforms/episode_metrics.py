@@ -72,11 +72,20 @@ class EpisodeMetrics(Transform):
         parent = self.parent
         if parent is None:
             raise RuntimeError("EpisodeMetrics needs a parent env: use it in a TransformedEnv.")
+        reward_keys = parent.reward_keys
+        reward_shape = parent.full_reward_spec[reward_keys[0]].shape if reward_keys else None
+        if len(reward_keys) != 1 or reward_shape.numel() != parent.batch_size.numel():
+            raise ValueError(
+                "EpisodeMetrics needs one reward per env (a single reward entry of shape "
+                f"[*batch, 1], batch {list(parent.batch_size)}), got reward keys {reward_keys}"
+                + (f" with shape {list(reward_shape)}" if reward_keys else "")
+                + ". For several agents, sum their rewards into one entry first."
+            )
         has_success, has_fail = self._flags()
         self._stats = EpisodeStats(
             parent.batch_size, parent.device, has_success=has_success, has_fail=has_fail
         )
-        self._reward_key = parent.reward_key
+        self._reward_key = reward_keys[0]
         self._reset_keys = list(parent.reset_keys)
         self._last = None
         return self._stats
