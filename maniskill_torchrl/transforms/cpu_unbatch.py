@@ -28,10 +28,15 @@ class CPUUnbatch(BatchSizeTransform):
     done by ManiSkill's ``CPUGymWrapper``.
 
     It is a :class:`~torchrl.envs.BatchSizeTransform` with a squeeze as
-    ``reshape_fn`` plus checks: the parent must have ``batch_size=[1]`` and,
-    if it is a ManiSkill env, run on the CPU sim. A GPU-sim env is already a
-    batched TorchRL env; use it directly (``ManiSkillEnv(..., num_envs=N)``
-    has ``batch_size=[N]``).
+    ``reshape_fn`` (outputs and specs) plus checks: the parent must have
+    ``batch_size=[1]`` and, if it is a ManiSkill env, run on the CPU sim. A
+    GPU-sim env is already a batched TorchRL env; use it directly
+    (``ManiSkillEnv(..., num_envs=N)`` has ``batch_size=[N]``). On the way in
+    only the parent's inputs (actions, state entries) get their env dim back
+    and the tensordict stays unbatched, because TorchRL hands that same
+    tensordict to the transforms placed after this one (a
+    :class:`~torchrl.envs.StepCounter` there keeps ``[1]``-shaped counts).
+    Any ``[1]``-batched env is accepted, ManiSkill or not.
 
     Place it first, right after the ManiSkill env: transforms after it see
     unbatched data. A ``"_reset"`` entry (shape ``[1]`` in the unbatched
