@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import numpy as np
 import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
 
@@ -263,8 +264,16 @@ class EpisodeStats:
             flat_total = total.view(-1)
             (idx,) = long.reshape(-1).nonzero(as_tuple=True)
             lens = n1.reshape(-1)[idx]
-            rows = self._hist.view(-1, self._hist.shape[-1])[idx]
-            for length in lens.unique().tolist():
-                sel = lens == length
-                flat_total[idx[sel]] = pairwise_sum(rows[sel, :length])
+            hist = self._hist.view(-1, self._hist.shape[-1])
+            if hist.device.type == "cpu":
+                # numpy itself is the reference: its sum over a zero-copy view is exact and
+                # O(1) python calls, where the torch replica costs ~30 ops per 128 rewards.
+                hist_np = hist.numpy()
+                for i, length in zip(idx.tolist(), lens.tolist()):
+                    flat_total[i] = float(np.add.reduce(hist_np[i, :length]))
+            else:
+                rows = hist[idx]
+                for length in lens.unique().tolist():
+                    sel = lens == length
+                    flat_total[idx[sel]] = pairwise_sum(rows[sel, :length])
         self._return = total
