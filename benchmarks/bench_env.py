@@ -18,7 +18,11 @@ Scenario "episodes" (PickCube-v1's 50-step limit: a reset every 50 steps):
   terminated or truncated (seeds drawn as ManiSkillEnv draws them);
 - ``step_and_maybe_reset``: as above, its resets seeded by ``env.set_seed``.
 
-Run: ``python benchmarks/bench_env.py [--rounds 9] [--steps 300] [--json out.json]``.
+Scenario "overhead" (no physics): the gym env under ManiSkillEnv is replaced by
+a stub that returns one recorded ``step`` output, so what is timed is the
+wrapper and TorchRL alone, in microseconds per step (``raw`` is the stub call).
+
+Run: ``python benchmarks/bench_env.py [--rounds 15] [--steps 200] [--json out.json]``.
 """
 from __future__ import annotations
 
@@ -141,11 +145,80 @@ def scenario_episodes(steps: int, rounds: int, warmup: int, verbose: bool):
     return results
 
 
+class _ReplayStub:
+    """Stands in for the gym env: returns one recorded step output, does no work."""
+
+    def __init__(self, env, out):
+        self.unwrapped = env.unwrapped
+        self._out = out
+
+    def step(self, action):
+        return self._out
+
+    def reset(self, *, seed=None, options=None):
+        return self._out[0], self._out[4]
+
+    def render(self):
+        raise NotImplementedError
+
+    def close(self):
+        pass
+
+
+def scenario_overhead(steps: int, rounds: int, warmup: int, verbose: bool):
+    from maniskill_torchrl import ManiSkillEnv
+
+    env = ManiSkillEnv("PickCube-v1", obs_mode="state", max_episode_steps=10 * steps + 100)
+    real = env._env
+    actions = make_actions(real, steps)
+    real.reset(seed=SEED)
+    stub = _ReplayStub(real, real.step(actions[0]))
+    env._env = stub
+    state = {}
+
+    def run_raw():
+        step = stub.step
+        for a in actions:
+            step(a)
+        return len(actions)
+
+    def setup_td():
+        state["td"] = env.reset(seed=SEED)
+
+    def run_step():
+        td, step = state["td"], env.step
+        for a in actions:
+            td.set("action", a)
+            step(td)
+        return len(actions)
+
+    def run_smr():
+        td, smr = state["td"], env.step_and_maybe_reset
+        for a in actions:
+            td.set("action", a)
+            _, td = smr(td)
+        return len(actions)
+
+    results = interleave(
+        [
+            Contender("stub", run_raw),
+            Contender("ManiSkillEnv.step", run_step, setup_td),
+            Contender("step_and_maybe_reset", run_smr, setup_td),
+        ],
+        rounds=rounds,
+        warmup=warmup,
+        verbose=verbose,
+    )
+    env._env = real
+    env.close()
+    return results
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--rounds", type=int, default=9)
+    p.add_argument("--rounds", type=int, default=11)
     p.add_argument("--warmup", type=int, default=1)
-    p.add_argument("--steps", type=int, default=300, help="env steps per contender per round")
+    p.add_argument("--steps", type=int, default=200, help="env steps per contender per round")
     p.add_argument("--skip-episodes", action="store_true", help="only the no-reset scenario")
     p.add_argument("--json", default=None, help="write the per-round times here")
     p.add_argument("-v", "--verbose", action="store_true")
@@ -167,6 +240,19 @@ def main(argv=None) -> int:
         print("\nscenario: episodes (50-step limit, seeded resets)")
         print(report(res_ep, baseline="raw+reset"))
         payload["episodes"] = {k: v.as_dict() for k, v in res_ep.items()}
+
+    res_ov = scenario_overhead(1000, args.rounds, args.warmup, args.verbose)
+    print("\nscenario: overhead (stub env, no physics; 1000 steps per round)")
+    print(report(res_ov, baseline="stub", difference=True))
+    payload["overhead"] = {k: v.as_dict() for k, v in res_ov.items()}
+    ov_step = 1e6 * (res_ov["ManiSkillEnv.step"].median - res_ov["stub"].median)
+    ov_smr = 1e6 * (res_ov["step_and_maybe_reset"].median - res_ov["stub"].median)
+    raw_us = 1e6 * res["raw"].median
+    print(
+        f"wrapper overhead: step {ov_step:.1f} us, step_and_maybe_reset {ov_smr:.1f} us per step; "
+        f"against the raw step ({raw_us:.0f} us) that predicts {1 + ov_step / raw_us:.3f}x and "
+        f"{1 + ov_smr / raw_us:.3f}x"
+    )
 
     verdict = "within" if r_step <= TARGET else "OVER"
     print(

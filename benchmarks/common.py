@@ -140,18 +140,31 @@ def ratio(results: dict[str, Result], name: str, baseline: str) -> float:
     return results[name].median / results[baseline].median
 
 
-def report(results: dict[str, Result], *, baseline: str | None = None, unit: str = "step") -> str:
-    """A markdown table: median and min time per unit, spread over rounds, ratio to ``baseline``."""
+def report(
+    results: dict[str, Result],
+    *,
+    baseline: str | None = None,
+    unit: str = "step",
+    difference: bool = False,
+) -> str:
+    """A markdown table: median and min time per unit, spread over rounds, and the ratio to
+    ``baseline`` (or, with ``difference=True``, the median time over the baseline's, in us:
+    for a baseline that does next to nothing)."""
     if baseline is None:
         baseline = next(iter(results))
+    last = f"us/{unit} over {baseline}" if difference else f"ratio to {baseline}"
     rows = [
-        f"| contender | median us/{unit} | min us/{unit} | spread | ratio to {baseline} |",
+        f"| contender | median us/{unit} | min us/{unit} | spread | {last} |",
         "|---|---:|---:|---:|---:|",
     ]
+    base = results[baseline].median
     for name, res in results.items():
+        cmp = (
+            f"{1e6 * (res.median - base):+.1f}" if difference else f"{ratio(results, name, baseline):.3f}x"
+        )
         rows.append(
             f"| {name} | {1e6 * res.median:.1f} | {1e6 * res.minimum:.1f} | "
-            f"{100 * res.spread:.1f}% | {ratio(results, name, baseline):.3f}x |"
+            f"{100 * res.spread:.1f}% | {cmp} |"
         )
     return "\n".join(rows)
 

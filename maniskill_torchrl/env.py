@@ -298,7 +298,7 @@ class ManiSkillWrapper(_EnvWrapper):
         # twice as much on the CPU sim, where each op counts); other shapes go through view.
         shape = self._done_shape
         done = torch.logical_or(terminated, truncated)
-        if reward.ndim == 1 and done.ndim == 1 and truncated.ndim == 1:
+        if reward.ndim == terminated.ndim == truncated.ndim == 1:
             source["reward"] = reward.unsqueeze(-1)
             source["terminated"] = terminated.unsqueeze(-1)
             source["truncated"] = truncated.unsqueeze(-1)
