@@ -45,27 +45,25 @@ SCRIPTED_NOISE = 0.05
 
 
 # --------------------------------------------------------------------------- flags
-def _positive_int(name: str):
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{name} must be a positive integer, got {text!r}") from None
-        if value < 1:
-            raise argparse.ArgumentTypeError(f"{name} must be a positive integer, got {value}")
-        return value
-
-    parse.__name__ = name  # argparse names the type in its messages
-    return parse
-
-
-def _seed(text: str) -> int:
+def _positive_int(text: str) -> int:
+    """argparse type: an int >= 1 (argparse prefixes the flag's name to the message)."""
     try:
         value = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"--seed must be an integer, got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {value}")
+    return value
+
+
+def _seed(text: str) -> int:
+    """argparse type: a seed in [0, 2**31)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer, got {text!r}") from None
     if not 0 <= value < 2**31:
-        raise argparse.ArgumentTypeError(f"--seed must be in [0, 2**31), got {value}")
+        raise argparse.ArgumentTypeError(f"must be in [0, 2**31), got {value}")
     return value
 
 
@@ -92,11 +90,11 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     demo.add_argument("--env-id", default=DEFAULT_ENV, help="ManiSkill task id")
-    demo.add_argument("--repeat", type=_positive_int("--repeat"), default=2,
+    demo.add_argument("--repeat", type=_positive_int, default=2,
                       help="ActionRepeat: sim steps per agent step")
-    demo.add_argument("--frames", type=_positive_int("--frames"), default=3000,
+    demo.add_argument("--frames", type=_positive_int, default=3000,
                       help="agent steps to collect over all workers (rounded up to whole batches)")
-    demo.add_argument("--workers", type=_positive_int("--workers"), default=2,
+    demo.add_argument("--workers", type=_positive_int, default=2,
                       help="ParallelEnv worker processes, one CPU env each")
     demo.add_argument("--out", type=Path, default=Path("outputs/demo"), help="output folder")
     demo.add_argument("--seed", type=_seed, default=0, help="seed of envs and policy")
@@ -104,12 +102,12 @@ def build_parser() -> argparse.ArgumentParser:
                       help="'scripted' is a pick-and-place controller for PickCube-v1; "
                            "'auto' uses it there and random actions elsewhere")
     demo.add_argument("--no-video", action="store_true", help="skip the rollout video")
-    demo.add_argument("--video-steps", type=_positive_int("--video-steps"), default=48,
+    demo.add_argument("--video-steps", type=_positive_int, default=48,
                       help="agent steps in the rollout video")
-    demo.add_argument("--video-size", type=_positive_int("--video-size"), default=DEFAULT_VIDEO_SIZE,
+    demo.add_argument("--video-size", type=_positive_int, default=DEFAULT_VIDEO_SIZE,
                       help="video width and height in pixels")
     demo.add_argument("--no-progress", action="store_true", help="no progress bar")
-    demo.set_defaults(func=run_demo)
+    demo.set_defaults(func=run_demo, subparser=demo)
     return parser
 
 
@@ -215,36 +213,68 @@ class _NoCudaRenderWarning:
         return "CUDA device was not found" not in record.getMessage()
 
 
-def _check_env_id(env_id: str) -> None:
+class UsageError(ValueError):
+    """A bad combination of flags: reported by argparse (usage line, exit code 2)."""
+
+
+def validate_demo_args(args: argparse.Namespace) -> None:
+    """Checks what argparse cannot check flag by flag; resolves ``--policy auto``.
+
+    Raises:
+        UsageError: with a message naming the flags involved.
+    """
+    if args.frames < args.workers:
+        raise UsageError(f"--frames ({args.frames}) must be at least --workers ({args.workers})")
+    if args.out.exists() and not args.out.is_dir():
+        raise UsageError(f"--out {args.out} exists and is not a folder")
+    if args.policy == "auto":
+        args.policy = "scripted" if args.env_id == DEFAULT_ENV else "random"
+    if args.policy == "scripted" and args.env_id != DEFAULT_ENV:
+        raise UsageError(
+            f"--policy scripted is a controller for {DEFAULT_ENV} only (got --env-id {args.env_id}); "
+            "use --policy random"
+        )
     import mani_skill.envs  # noqa: F401  (registers the tasks)
     from mani_skill.utils.registration import REGISTERED_ENVS
 
-    if env_id not in REGISTERED_ENVS:
-        stem = env_id.split("-")[0].lower()
+    if args.env_id not in REGISTERED_ENVS:
+        stem = args.env_id.split("-")[0].lower()
         close = [e for e in sorted(REGISTERED_ENVS) if stem and stem in e.lower()][:5]
-        hint = f" Did you mean one of {close}?" if close else ""
-        raise SystemExit(
-            f"maniskill-torchrl demo: error: unknown --env-id {env_id!r}.{hint} "
-            "Tasks that work offline include PickCube-v1, PushCube-v1, StackCube-v1, PullCube-v1."
+        hint = f"; did you mean one of {close}?" if close else ""
+        raise UsageError(
+            f"unknown --env-id {args.env_id!r}{hint} (tasks that work offline include "
+            "PickCube-v1, PushCube-v1, StackCube-v1, PullCube-v1)"
         )
+    missing = _missing_assets(REGISTERED_ENVS[args.env_id])
+    if missing:
+        # Checked here: in a worker ManiSkill would prompt on stdin for the download, then exit.
+        raise UsageError(
+            f"--env-id {args.env_id} needs assets that are not downloaded ({', '.join(missing[:5])}); "
+            f"fetch them with `python -m mani_skill.utils.download_asset {args.env_id}` or pick another task"
+        )
+
+
+def _missing_assets(spec: Any) -> list[str]:
+    """The asset ids a ManiSkill task needs and does not find on disk (as ``EnvSpec.make`` checks)."""
+    from mani_skill.utils import assets
+
+    missing = []
+    for asset_id in getattr(spec, "asset_download_ids", None) or []:
+        ids = (
+            assets.expand_data_group_into_individual_data_source_ids(asset_id)
+            if asset_id in assets.DATA_GROUPS
+            else [asset_id]
+        )
+        missing += [i for i in ids if not assets.is_data_source_downloaded(i)]
+    return missing
 
 
 # --------------------------------------------------------------------------- demo
 def run_demo(args: argparse.Namespace) -> int:
-    """Runs ``maniskill-torchrl demo``; returns the exit code."""
+    """Runs ``maniskill-torchrl demo`` with validated flags; returns the exit code."""
     _quiet_maniskill()
     policy_name = args.policy
-    if policy_name == "auto":
-        policy_name = "scripted" if args.env_id == DEFAULT_ENV else "random"
-    if policy_name == "scripted" and args.env_id != DEFAULT_ENV:
-        raise SystemExit(
-            f"maniskill-torchrl demo: error: --policy scripted is a controller for {DEFAULT_ENV} only "
-            f"(got --env-id {args.env_id}); use --policy random."
-        )
     out: Path = args.out
-    if out.exists() and not out.is_dir():
-        raise SystemExit(f"maniskill-torchrl demo: error: --out {out} exists and is not a folder.")
-    _check_env_id(args.env_id)
     out.mkdir(parents=True, exist_ok=True)
 
     # Two shared cores: the main process only batches and runs a tiny policy.
@@ -516,9 +546,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command == "demo":
-        # Checked here, not in argparse: the message should name both flags.
-        if args.frames < args.workers:
-            parser.error(f"--frames ({args.frames}) must be at least --workers ({args.workers})")
+        try:
+            validate_demo_args(args)
+        except UsageError as err:
+            args.subparser.error(str(err))  # exits with code 2
     os.environ.setdefault("PYTHONWARNINGS", "ignore::DeprecationWarning")  # reaches spawned workers
     return args.func(args)
 

@@ -1,0 +1,196 @@
+"""What users run: the ``maniskill-torchrl demo`` CLI and the examples, end to end.
+
+Each runs as a subprocess in a small configuration, the way a user starts it,
+and the test checks its exit code, its printed lines and the files it writes.
+Flag validation runs in-process (no simulator is built). On 2 busy CPU cores
+the whole file takes about a minute and a half; nothing here is skipped.
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from maniskill_torchrl import cli
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLES = ROOT / "examples"
+BIN = Path(sys.executable).parent
+TIMEOUT_S = 300  # a hung worker fails the test instead of the session
+
+
+def run(cmd: list[str], cwd: Path) -> subprocess.CompletedProcess:
+    """Runs ``cmd`` like a user would; a failure shows its output."""
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    proc = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True, timeout=TIMEOUT_S)
+    assert proc.returncode == 0, (
+        f"{' '.join(map(str, cmd))} exited with {proc.returncode}\n"
+        f"--- stdout ---\n{proc.stdout[-4000:]}\n--- stderr ---\n{proc.stderr[-4000:]}"
+    )
+    return proc
+
+
+# ----------------------------------------------------------------------------- demo
+def test_demo_console_script_end_to_end(tmp_path: Path) -> None:
+    """``maniskill-torchrl demo`` (what ``make demo`` runs) with few frames and a tiny video."""
+    script = BIN / "maniskill-torchrl"
+    assert script.exists(), f"console script not installed at {script}: pip install -e . in this venv"
+    out = tmp_path / "demo"
+    proc = run(
+        [str(script), "demo", "--frames", "200", "--workers", "2", "--video-steps", "4",
+         "--video-size", "64", "--out", str(out), "--no-progress"],
+        cwd=tmp_path,
+    )
+    stdout = proc.stdout
+    for line in ("maniskill-torchrl demo summary", "frames/s", "episodes finished", "mean return",
+                 "success rate", "ParallelEnv(2) x [CPUUnbatch, ActionRepeat(2), EpisodeMetrics]"):
+        assert line in stdout, f"{line!r} missing from:\n{stdout}"
+
+    png = (out / "returns.png").read_bytes()
+    assert png.startswith(b"\x89PNG\r\n\x1a\n")
+    import imageio.v2 as imageio
+
+    reader = imageio.get_reader(out / "rollout.mp4")
+    frames = list(reader.iter_data())  # not list(reader): its len() is inf for ffmpeg streams
+    reader.close()
+    assert len(frames) == 5  # the reset frame + one per agent step
+    assert frames[0].shape == (64, 64, 3)
+
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["frames"] == 200 and summary["workers"] == 2 and summary["repeat"] == 2
+    assert summary["policy"] == "scripted"
+    # ActionRepeat(2): up to 2 sim steps per agent step, fewer only where an episode ended mid-repeat.
+    assert summary["frames"] < summary["sim_steps"] <= 2 * summary["frames"]
+    # The scripted policy finishes a PickCube episode in ~15 agent steps: 200 frames end several.
+    assert summary["episodes_finished"] >= 4
+    episodes = summary["episodes"]
+    assert len(episodes) == summary["episodes_finished"]
+    assert {"return", "episode_len", "success_once", "success_at_end"} <= set(episodes[0])
+    assert all(1 <= e["episode_len"] <= 25 for e in episodes)  # PickCube's 50-step limit / repeat 2
+    assert sum(e["success_once"] for e in episodes) >= len(episodes) // 2
+
+
+def test_demo_no_video_writes_no_video(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys) -> None:
+    """``--no-video`` builds no render env; the plot and summary are still written (collection stubbed)."""
+    episodes = [{"return": 1.5, "episode_len": 10, "success_once": True, "success_at_end": True,
+                 "terminated": True}, {"return": 0.5, "episode_len": 25, "success_once": False,
+                 "success_at_end": False, "terminated": False}]
+    stats = {"frames": 100, "sim_steps": 190, "startup_s": 1.0, "frames_per_s": 50.0,
+             "sim_steps_per_s": 95.0, "episodes_finished": 2}
+    monkeypatch.setattr(cli, "_collect", lambda *a: (list(episodes), dict(stats)))
+
+    def no_video(*a, **k):
+        raise AssertionError("record_video called with --no-video")
+
+    monkeypatch.setattr(cli, "record_video", no_video)
+    out = tmp_path / "o"
+    assert cli.main(["demo", "--no-video", "--out", str(out)]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["returns.png", "summary.json"]
+    text = capsys.readouterr().out
+    assert "success rate          50.0 %" in text
+    assert "mean return           1.000" in text
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["demo", "--frames", "0"], "argument --frames: must be a positive integer, got 0"),
+        (["demo", "--workers", "two"], "argument --workers: must be a positive integer, got 'two'"),
+        (["demo", "--repeat", "-1"], "argument --repeat: must be a positive integer"),
+        (["demo", "--seed", "x"], "argument --seed: must be an integer"),
+        (["demo", "--frames", "1", "--workers", "2"], "--frames (1) must be at least --workers (2)"),
+        (["demo", "--env-id", "PickCub-v1"], "unknown --env-id 'PickCub-v1'"),
+        (["demo", "--env-id", "PushCube-v1", "--policy", "scripted"], "--policy scripted is a controller"),
+        (["demo", "--policy", "greedy"], "argument --policy: invalid choice"),
+        (["demo", "--bogus"], "unrecognized arguments: --bogus"),
+        ([], "the following arguments are required: COMMAND"),
+    ],
+)
+def test_demo_bad_flags(argv: list[str], message: str, capsys) -> None:
+    with pytest.raises(SystemExit) as exc:
+        cli.main(argv)
+    assert exc.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_demo_out_must_be_a_folder(tmp_path: Path, capsys) -> None:
+    not_a_dir = tmp_path / "file"
+    not_a_dir.write_text("")
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["demo", "--out", str(not_a_dir)])
+    assert exc.value.code == 2
+    assert "exists and is not a folder" in capsys.readouterr().err
+
+
+def test_python_dash_m_help(tmp_path: Path) -> None:
+    proc = run([sys.executable, "-m", "maniskill_torchrl", "demo", "--help"], cwd=tmp_path)
+    for flag in ("--env-id", "--repeat", "--frames", "--workers", "--out", "--seed", "--no-video"):
+        assert flag in proc.stdout
+
+
+def test_scripted_policy_is_batched_and_bounded() -> None:
+    import torch
+
+    pol = cli.PickCubeScriptedPolicy()
+    # cube 5 cm away at gripper height / just below the gripper / in the gripper
+    tcp_to_obj = torch.tensor([[0.05, 0.0, 0.0], [0.0, 0.0, -0.005], [0.0, 0.0, 0.0]])
+    obj_to_goal = torch.tensor([[0.0, 0.0, 0.1]] * 3)
+    grasped = torch.tensor([False, False, True])
+    action = pol(tcp_to_obj, obj_to_goal, grasped)
+    assert action.shape == (3, 4) and action.abs().max() <= 1
+    assert action[:, 3].tolist() == [1.0, -1.0, -1.0]  # open far away, close at the cube or holding it
+    assert action[0, 2] > 0 and action[0, 0] > 0  # not aligned yet: towards a point above the cube
+    assert action[1, 2] < 0  # aligned: descend onto it
+    assert action[2, :3].tolist() == pytest.approx([0.0, 0.0, 1.0])  # holding it: towards the goal
+
+
+# ------------------------------------------------------------------------- examples
+def test_ppo_smoke(tmp_path: Path) -> None:
+    out = tmp_path / "ppo"
+    proc = run([sys.executable, str(EXAMPLES / "ppo_torchrl.py"), "--smoke", "--out", str(out)], cwd=tmp_path)
+    assert "PPO on PushCube-v1 (CPU sim, 2 envs" in proc.stdout
+    iters = [line for line in proc.stdout.splitlines() if line.startswith("iter")]
+    assert len(iters) == 3, proc.stdout
+
+    records = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    assert [r["frames"] for r in records] == [100, 200, 300]
+    # 50-step PushCube episodes and 50-step rollouts: every iteration ends 2 episodes.
+    assert all(r["episodes"] == 2 and r["episode_len"] == 50 for r in records)
+    assert all({"return", "success_once", "loss_objective", "loss_critic"} <= set(r) for r in records)
+
+    import torch
+
+    ckpt = torch.load(out / "ppo_checkpoint.pt", weights_only=False)
+    assert {"policy", "value", "args", "frames"} <= set(ckpt)
+    assert ckpt["frames"] == 300 and ckpt["args"]["env_id"] == "PushCube-v1"
+    assert any(k.endswith("weight") for k in ckpt["policy"]) and any(k.endswith("weight") for k in ckpt["value"])
+
+
+def test_evaluate_gym(tmp_path: Path) -> None:
+    proc = run(
+        [sys.executable, str(EXAMPLES / "evaluate_gym.py"), "--num-envs", "2", "--episodes", "2",
+         "--max-episode-steps", "10", "--seed", "1"],
+        cwd=tmp_path,
+    )
+    lines = [line for line in proc.stdout.splitlines() if line.startswith("episode ")]
+    assert len(lines) == 2, proc.stdout
+    for line in lines:
+        # ignore_terminations=True: every episode runs to the time limit.
+        assert "success_once=" in line and "success_at_end=" in line and "return=" in line
+        assert "episode_len=10" in line
+    for avg in ("episodes: 2", "avg success_once:", "avg success_at_end:", "avg return:"):
+        assert avg in proc.stdout
+
+
+def test_migrate_from_maniskill(tmp_path: Path) -> None:
+    proc = run(
+        [sys.executable, str(EXAMPLES / "migrate_from_maniskill.py"), "--steps", "12",
+         "--max-episode-steps", "10", "--repeat", "2"],
+        cwd=tmp_path,
+    )
+    assert "identical: True" in proc.stdout, proc.stdout
+    assert proc.stdout.count("reset") >= 2 * 3  # both columns: the first reset and two seeded resets
