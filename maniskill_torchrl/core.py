@@ -67,7 +67,7 @@ def merge_step(
         >>> out["reward"].squeeze(-1).tolist(), out["obs"][:, 0].tolist()
         ([1.0, 2.0], [0.0, 1.0])
     """
-    out = new.copy()
+    out = _copy(new, reward_keys, done_keys)
     for key in reward_keys:
         out.set(key, acc.get(key) + new.get(key))
     for key in done_keys:
@@ -75,6 +75,18 @@ def merge_step(
     if running is None:
         return out
     return _where(running, out, acc)
+
+
+def _copy(td: TensorDictBase, *key_lists: Sequence[NestedKey]) -> TensorDictBase:
+    """``td.copy()``; where only top-level keys will be set on the copy, a copy of the top-level
+    container alone (about 5x faster: this runs once per inner step of an action repeat)."""
+    if (
+        type(td) is TensorDict
+        and not td._has_names()
+        and all(isinstance(k, str) for keys in key_lists for k in keys)
+    ):
+        return TensorDict._new_unsafe(td._tensordict.copy(), batch_size=td.batch_size, device=td.device)
+    return td.copy()
 
 
 def _where(mask: torch.Tensor, a: TensorDictBase, b: TensorDictBase) -> TensorDictBase:
