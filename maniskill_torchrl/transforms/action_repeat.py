@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import torch
 from tensordict import TensorDictBase
-from torchrl.envs import EnvBase, Transform, TransformedEnv
+from torchrl.envs import Compose, EnvBase, Transform, TransformedEnv
 from torchrl.envs.batched_envs import BatchedEnvBase
 
 from maniskill_torchrl.core import any_done, merge_step
@@ -51,14 +51,15 @@ class ActionRepeat(Transform):
             plain step.
 
     Examples:
-        >>> from torchrl.envs import TransformedEnv, StepCounter
+        >>> from torchrl.envs import Compose, StepCounter, TransformedEnv
         >>> from maniskill_torchrl import ManiSkillEnv
         >>> from maniskill_torchrl.transforms import ActionRepeat
         >>> env = TransformedEnv(
-        ...     ManiSkillEnv("MS-CartpoleBalance-v1", obs_mode="state"), ActionRepeat(3)
+        ...     ManiSkillEnv("PickCube-v1", obs_mode="state"),
+        ...     Compose(ActionRepeat(3), StepCounter()),  # the StepCounter counts outer steps
         ... )
-        >>> env.append_transform(StepCounter())  # counts outer steps
-        >>> td = env.rollout(4, break_when_any_done=False)
+        >>> _ = env.set_seed(0)
+        >>> td = env.rollout(4)
         >>> td["next", "elapsed_steps"].squeeze(0).tolist()  # inner steps taken
         [3, 6, 9, 12]
         >>> td["next", "step_count"].squeeze(-1).squeeze(0).tolist()
@@ -87,26 +88,16 @@ class ActionRepeat(Transform):
             self._stash = tensordict.exclude("next")
         return tensordict
 
-    def _parent_info(self) -> tuple:
-        """(parent, reward keys, done keys, state keys, parent skips envs), cached per parent."""
+    def _parent_info(self) -> _ParentInfo:
+        """What the inner loop needs to know about the parent, cached per parent."""
         parent = self.parent
-        cache = self._cache
-        if cache is not None and cache[0] is parent:
-            return cache
+        info = self._cache
+        if info is not None and info.parent is parent:
+            return info
         if parent is None:
             raise RuntimeError("ActionRepeat must be used inside a TransformedEnv.")
-        base: EnvBase = parent
-        while isinstance(base, TransformedEnv):
-            base = base.base_env
-        state_keys = list(parent.full_state_spec.keys(True, True))
-        cache = self._cache = (
-            parent,
-            list(parent.reward_keys),
-            list(parent.done_keys),
-            state_keys,
-            isinstance(base, BatchedEnvBase),
-        )
-        return cache
+        info = self._cache = _ParentInfo(parent)
+        return info
 
     def empty_cache(self) -> None:
         self._cache = None
@@ -120,32 +111,73 @@ class ActionRepeat(Transform):
         td, self._stash = self._stash, None
         if td is None:  # _step called without the TransformedEnv's inverse pass
             td = tensordict.exclude("next")
-        parent, reward_keys, done_keys, state_keys, partial = self._parent_info()
-        batch = parent.batch_size
+        info = self._parent_info()
+        reward_keys, done_keys, stop_keys = info.reward_keys, info.done_keys, info.stop_keys
 
-        running = ~any_done(next_tensordict, done_keys)
+        running = ~any_done(next_tensordict, stop_keys)
         outer_mask = td.get("_step", None)
         if outer_mask is not None:  # an outer partial step: skipped envs stay skipped
-            running = running & outer_mask.reshape(batch)
-        acc = next_tensordict
-        new = next_tensordict
+            running = running & outer_mask.reshape(running.shape)
+        n_envs = running.numel()
+        acc = new = next_tensordict
         for _ in range(self.repeat - 1):
-            # One host sync per inner step, as ManiSkill's wrapper does.
-            if not running.any():
+            # One host sync per inner step (ManiSkill's wrapper has two).
+            n_running = int(running.sum())
+            if n_running == 0:
                 break
-            all_running = bool(running.all())
-            if state_keys:  # e.g. a StepCounter placed before: the next inner step starts where this one ended
-                td.update(new.select(*state_keys, strict=False))
-            if partial:
+            all_running = n_running == n_envs
+            if info.state_keys:  # e.g. a StepCounter placed before: the next inner step starts where this one ended
+                td.update(new.select(*info.state_keys, strict=False))
+            if info.partial:
                 if all_running:
                     td.pop("_step", None)
                 else:
                     td.set("_step", running)
-            new = parent._step(td)
+            new = info.step(td)
             # All envs running: a plain fold, no masking at all.
             acc = merge_step(acc, new, None if all_running else running, reward_keys, done_keys)
-            running = running & ~any_done(new, done_keys)
+            running = running & ~any_done(new, stop_keys)
         return acc
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(repeat={self.repeat})"
+
+
+class _ParentInfo:
+    """The parent's keys and how to step it, computed once per parent."""
+
+    __slots__ = ("parent", "reward_keys", "done_keys", "stop_keys", "state_keys", "partial", "_base", "_complete")
+
+    def __init__(self, parent: TransformedEnv) -> None:
+        self.parent = parent
+        self.reward_keys = list(parent.reward_keys)
+        self.done_keys = list(parent.done_keys)
+        # An env ends when a "done" entry is set (TorchRL keeps done = terminated | truncated at
+        # every level); fall back to every done entry where no key is named "done".
+        self.stop_keys = [
+            k for k in self.done_keys if (k if isinstance(k, str) else k[-1]) == "done"
+        ] or self.done_keys
+        self.state_keys = list(parent.full_state_spec.keys(True, True))
+        base: EnvBase = parent
+        while isinstance(base, TransformedEnv):
+            base = base.base_env
+        self.partial = isinstance(base, BatchedEnvBase)
+        transform = parent.transform
+        empty = isinstance(transform, Compose) and len(transform) == 0
+        # Why: with no transform before this one, parent._step is base_env._step wrapped in an
+        # identity inverse (a clone) and an identity forward pass: call the base env directly.
+        self._base = parent.base_env if empty else None
+        self._complete: bool | None = None
+
+    def step(self, td: TensorDictBase) -> TensorDictBase:
+        base = self._base
+        if base is None:
+            return self.parent._step(td)
+        out = base._step(td)
+        complete = self._complete
+        if complete is None:  # fill missing done entries as TransformedEnv does, if this env needs it
+            keys = set(out.keys(True, True))
+            complete = self._complete = all(k in keys for k in self.done_keys)
+        if not complete:
+            base._complete_done(base.full_done_spec, out)
+        return out
