@@ -157,6 +157,9 @@ def episode_stats(batch: TensorDictBase) -> dict[str, float]:
 def train(args: argparse.Namespace) -> dict[str, Any]:
     """Runs PPO; returns the last iteration's log record."""
     device = torch.device(args.device)
+    if device.type == "cuda" and device.index is None:
+        # ManiSkill reports "cuda:0": an indexless "cuda" would look like another device to TorchRL.
+        device = torch.device("cuda", torch.cuda.current_device())
     torch.manual_seed(args.seed)
     if device.type == "cpu":
         torch.set_num_threads(args.threads)

@@ -1,7 +1,7 @@
 """The ``maniskill-torchrl`` command line.
 
-``maniskill-torchrl demo`` shows the library end to end on the CPU in about a
-minute: a :class:`~torchrl.envs.ParallelEnv` of single ManiSkill envs, each
+``maniskill-torchrl demo`` shows the library end to end on the CPU (about a
+minute on 2 idle cores): a :class:`~torchrl.envs.ParallelEnv` of single ManiSkill envs, each
 worker running ``ManiSkillEnv -> CPUUnbatch -> ActionRepeat -> EpisodeMetrics``,
 fed to a :class:`torchrl.collectors.Collector`; it prints a summary table and
 writes a per-episode return plot, a short rollout video and a JSON summary.
@@ -430,9 +430,9 @@ def print_summary(summary: dict[str, Any]) -> None:
                      "EpisodeMetrics]"),
         ("frames (agent steps)", f"{summary['frames']}"),
         ("sim steps", f"{summary['sim_steps']}"),
-        ("start-up", fmt(summary["startup_s"], ".1f", " s")),
-        ("frames/s", fmt(summary["frames_per_s"], ".1f")),
-        ("sim steps/s", fmt(summary["sim_steps_per_s"], ".1f")),
+        ("start-up + 1st batch", fmt(summary["startup_s"], ".1f", " s")),
+        ("frames/s (steady)", fmt(summary["frames_per_s"], ".1f")),
+        ("sim steps/s (steady)", fmt(summary["sim_steps_per_s"], ".1f")),
         ("episodes finished", f"{summary['episodes_finished']}"),
         ("mean episode length", fmt(means["mean_episode_len"], ".1f", " agent steps")),
         ("mean return", fmt(means["mean_return"], ".3f")),
