@@ -104,12 +104,6 @@ def env_pair() -> Callable[..., tuple[gym.Env, gym.Env]]:
             env.close()
 
 
-def _clone(x):
-    if isinstance(x, dict):
-        return {k: _clone(v) for k, v in x.items()}
-    return x.clone()
-
-
 def _as_numpy(x):
     return {k: _as_numpy(v) for k, v in x.items()} if isinstance(x, dict) else x.numpy().copy()
 

@@ -1,0 +1,212 @@
+"""Gym shim against ManiSkill's own wrappers (PickCube-v1, state obs, CPU sim).
+
+One process, one ManiSkill env per scenario: ManiSkill's wrapper and ours wrap
+the same gym env (wrappers are thin, so the physics work is identical), run the
+same pre-generated actions and reset with the same seeds when an episode ends
+(PickCube-v1's 50-step limit), as a user loop does. Each round starts from the
+same seeded reset (untimed) and runs every contender once, in alternating order;
+a ``raw`` loop on the gym env itself is timed alongside for the absolute overhead.
+
+On a shared machine wall time swings by tens of percent from round to round, so
+each round records both wall time and this process's CPU time
+(``time.process_time``, all threads; not inflated by other processes taking
+the cores), and the ratio reported is the median over rounds of the per-round
+ratio ours / ManiSkill (adjacent runs see the same machine state), next to the
+ratio of the median times.
+
+Scenarios:
+
+- ``CPUGymWrapper()``: defaults; numpy actions in, numpy / python out;
+- ``CPUGymWrapper(ignore_terminations=True, record_metrics=True)``: the
+  evaluation setting (episode metrics every step);
+- ``ActionRepeatWrapper(repeat=2)`` and ``(repeat=3)``: batched torch actions,
+  a step is one outer step.
+
+Run: ``python benchmarks/bench_wrappers.py [--rounds 30] [--steps 100] [--json out.json]``.
+"""
+from __future__ import annotations
+
+import argparse
+import gc
+import os
+import statistics
+import sys
+import time
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from common import Contender, machine_line, save_json  # noqa: E402
+
+warnings.filterwarnings("ignore")
+
+TARGET = 1.05
+SEED = 0
+
+
+def make_actions(space, n: int, seed: int = 0) -> list[torch.Tensor]:
+    """``n`` uniform float32 actions of the single action space's shape."""
+    g = torch.Generator().manual_seed(seed)
+    low = torch.as_tensor(space.low, dtype=torch.float32)
+    high = torch.as_tensor(space.high, dtype=torch.float32)
+    return [low + (high - low) * torch.rand(space.shape, generator=g) for _ in range(n)]
+
+
+def _loop_unbatched(env, actions, seeds):
+    """A gymnasium user loop: step, reset (seeded) when terminated or truncated."""
+
+    def run():
+        step, reset, it = env.step, env.reset, iter(seeds)
+        for a in actions:
+            _, _, terminated, truncated, _ = step(a)
+            if terminated or truncated:
+                reset(seed=next(it))
+        return len(actions)
+
+    return run
+
+
+def _loop_batched(env, actions, seeds):
+    """A batched-torch user loop: step, reset (seeded) when any env is done."""
+
+    def run():
+        step, reset, it = env.step, env.reset, iter(seeds)
+        for a in actions:
+            _, _, terminated, truncated, _ = step(a)
+            if (terminated | truncated).any():
+                reset(seed=next(it))
+        return len(actions)
+
+    return run
+
+
+@dataclass
+class Times:
+    wall: list[float] = field(default_factory=list)
+    cpu: list[float] = field(default_factory=list)
+
+
+def interleave_clocks(contenders: list[Contender], rounds: int, warmup: int) -> dict[str, Times]:
+    """Round-robin (alternating order) timing of each contender, wall and process CPU time per unit."""
+    out = {c.name: Times() for c in contenders}
+    for r in range(warmup + rounds):
+        order = contenders if r % 2 == 0 else contenders[::-1]
+        for c in order:
+            c.setup()
+            gc.collect()
+            w0, c0 = time.perf_counter(), time.process_time()
+            n = c.run()
+            w1, c1 = time.perf_counter(), time.process_time()
+            if r >= warmup:
+                out[c.name].wall.append((w1 - w0) / n)
+                out[c.name].cpu.append((c1 - c0) / n)
+    return out
+
+
+def paired_ratio(times: dict[str, Times], name: str, base: str, clock: str = "cpu") -> float:
+    """Median over rounds of the per-round ratio ``name / base``."""
+    return statistics.median(x / y for x, y in zip(getattr(times[name], clock), getattr(times[base], clock)))
+
+
+def table(times: dict[str, Times], base: str = "ManiSkill") -> str:
+    rows = [
+        "| contender | median CPU us/step | median wall us/step | ratio to ManiSkill (paired CPU) "
+        "| ratio (paired wall) | ratio of median CPU |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+    for name, t in times.items():
+        med_cpu = statistics.median(t.cpu)
+        rows.append(
+            f"| {name} | {1e6 * med_cpu:.1f} | {1e6 * statistics.median(t.wall):.1f} | "
+            f"{paired_ratio(times, name, base):.3f}x | {paired_ratio(times, name, base, 'wall'):.3f}x | "
+            f"{med_cpu / statistics.median(times[base].cpu):.3f}x |"
+        )
+    return "\n".join(rows)
+
+
+def scenario(kind: str, steps: int, rounds: int, warmup: int, **kwargs) -> dict[str, Times]:
+    import gymnasium as gym
+    import mani_skill.envs  # noqa: F401
+    from mani_skill.utils import wrappers as ms_wrappers
+
+    from maniskill_torchrl import wrappers as our_wrappers
+
+    env = gym.make("PickCube-v1", num_envs=1, obs_mode="state")  # 50-step episodes
+    seeds = list(range(SEED + 1, SEED + 1 + steps))
+    if kind == "cpu":
+        ms = ms_wrappers.CPUGymWrapper(env, **kwargs)
+        ours = our_wrappers.CPUGymWrapper(env, **kwargs)
+        actions = [a.numpy() for a in make_actions(ms.action_space, steps, seed=1)]
+        loop = _loop_unbatched
+        raw_actions = [a[None] for a in actions]
+    else:
+        ms = ms_wrappers.ActionRepeatWrapper(env, **kwargs)
+        ours = our_wrappers.ActionRepeatWrapper(env, **kwargs)
+        actions = [a[None] for a in make_actions(env.unwrapped.single_action_space, steps, seed=1)]
+        loop = _loop_batched
+        raw_actions = actions
+
+    def setup():
+        env.reset(seed=SEED)
+
+    contenders = [
+        Contender("ManiSkill", loop(ms, actions, seeds), setup),
+        Contender("maniskill_torchrl", loop(ours, actions, seeds), setup),
+    ]
+    if kind == "cpu":  # the same physics without any wrapper (ActionRepeat's raw work is 2-3 steps)
+        contenders.append(Contender("raw env (no wrapper)", _loop_batched(env, raw_actions, seeds), setup))
+    res = interleave_clocks(contenders, rounds=rounds, warmup=warmup)
+    env.close()
+    return res
+
+
+SCENARIOS = [
+    ("CPUGymWrapper()", "cpu", {}),
+    (
+        "CPUGymWrapper(ignore_terminations=True, record_metrics=True)",
+        "cpu",
+        {"ignore_terminations": True, "record_metrics": True},
+    ),
+    ("ActionRepeatWrapper(repeat=2)", "repeat", {"repeat": 2}),
+    ("ActionRepeatWrapper(repeat=3)", "repeat", {"repeat": 3}),
+]
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--rounds", type=int, default=30)
+    p.add_argument("--warmup", type=int, default=2)
+    p.add_argument("--steps", type=int, default=100, help="wrapper steps per contender per round")
+    p.add_argument("--only", default=None, help="run the scenarios whose name contains this")
+    p.add_argument("--json", default=None, help="write the per-round times here")
+    args = p.parse_args(argv)
+
+    torch.set_num_threads(1)
+    print(f"bench_wrappers: PickCube-v1 state, CPU sim, {args.steps} steps x {args.rounds} rounds")
+    print(machine_line())
+    payload, summary = {}, []
+    for name, kind, kwargs in SCENARIOS:
+        if args.only and args.only not in name:
+            continue
+        res = scenario(kind, args.steps, args.rounds, args.warmup, **kwargs)
+        print(f"\n### {name}\n")
+        print(table(res))
+        r = paired_ratio(res, "maniskill_torchrl", "ManiSkill")
+        diff = statistics.median(res["maniskill_torchrl"].cpu) - statistics.median(res["ManiSkill"].cpu)
+        summary.append((name, r, 1e6 * diff))
+        payload[name] = {k: {"wall_s": v.wall, "cpu_s": v.cpu} for k, v in res.items()}
+
+    print("\n| shim class vs ManiSkill's | ratio (median of paired CPU-time ratios) | CPU us/step difference | target |")
+    print("|---|---:|---:|---|")
+    for name, r, diff in summary:
+        print(f"| {name} | {r:.3f}x | {diff:+.1f} | {'ok' if r <= TARGET else 'OVER'} (<= {TARGET:.2f}x) |")
+    if args.json:
+        save_json(args.json, payload)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
