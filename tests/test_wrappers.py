@@ -273,6 +273,48 @@ def test_action_repeat_equivalence(env_pair, task, obs_mode, max_steps, n_steps,
         assert mid_repeat_ends >= 1
 
 
+class _FakeBatchedStep:
+    """A batched step (3 envs, as on the GPU sim) ending env 0 by termination at step 2, env 1 by
+    truncation at step 4, env 2 never; dict obs, non-trivial float rewards, a python info value."""
+
+    def __init__(self) -> None:
+        self.t = 0
+
+    def __call__(self, action):
+        self.t += 1
+        t = torch.full((3,), self.t, dtype=torch.int32)
+        ids = torch.arange(3)
+        obs = {
+            "agent": {"x": (t[:, None] + ids[:, None] * 0.5 + torch.tensor([[0.1, 0.2]])).float()},
+            "img": (t * 10 + ids).to(torch.uint8)[:, None].repeat(1, 4),
+        }
+        reward = (t.float() * 0.1 + ids / 7).float()
+        terminated = torch.tensor([self.t >= 2, False, False])
+        truncated = torch.tensor([False, self.t >= 4, False])
+        info = {"elapsed_steps": t, "success": t % 2 == 0, "python_value": self.t}
+        return obs, reward, terminated, truncated, info
+
+
+@pytest.mark.parametrize("repeat", [2, 3, 5])
+def test_action_repeat_batched_partial_done(env_pair, repeat):
+    """Several envs ending at different inner steps (GPU-sim-like batch): same masked merge as ManiSkill."""
+    env = env_pair("PickCube-v1", "state", 10)[1]
+    fake = _FakeBatchedStep()
+    env.step = fake  # the outer gym wrapper's step, on this instance only
+    try:
+        outs = []
+        for cls in (MSActionRepeatWrapper, ActionRepeatWrapper):
+            fake.t = 0
+            wrapper = cls(env, repeat)
+            outs.append([wrapper.step(None) for _ in range(3)])
+        assert_same(outs[0], outs[1])
+        first = outs[1][0]
+        assert first[2].tolist() == [True, False, False] and first[3].tolist() == [False, repeat >= 4, False]
+        assert first[4]["elapsed_steps"].tolist() == [2, min(repeat, 4), repeat]  # each env's last real step
+    finally:
+        del env.step
+
+
 def test_action_repeat_under_cpu_gym_wrapper(env_pair):
     """The documented stack CPUGymWrapper(ActionRepeatWrapper(env)), with early `fail` ends."""
     env_ref, env_ours = env_pair("MS-CartpoleBalance-v1", "state", 20)

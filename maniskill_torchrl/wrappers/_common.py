@@ -22,7 +22,10 @@ def np_unbatch(x: Any) -> Any:
     through ``np.array`` first (a numpy scalar becomes a 0-d array).
     """
     if isinstance(x, torch.Tensor):
-        a = x.cpu().numpy()
+        try:
+            a = x.numpy()  # CPU tensors: a zero-copy view, as ManiSkill's x.cpu().numpy()
+        except TypeError:  # on an accelerator
+            a = x.cpu().numpy()
     elif isinstance(x, dict):
         return {k: np_unbatch(v) for k, v in x.items()}
     elif isinstance(x, np.ndarray):

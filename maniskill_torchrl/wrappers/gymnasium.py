@@ -25,6 +25,10 @@ __all__ = ["CPUGymWrapper"]
 _IMAGE_RENDER_MODES = ("rgb_array", "sensors", "all")
 
 
+def _tensor(x: Any) -> torch.Tensor | None:
+    return x if x is None or type(x) is torch.Tensor else torch.as_tensor(x)
+
+
 class CPUGymWrapper(_ManiSkillCPUGymWrapper):
     """A single CPU ManiSkill env with the standard, unbatched numpy gymnasium API.
 
@@ -132,11 +136,7 @@ class CPUGymWrapper(_ManiSkillCPUGymWrapper):
             stats = self._stats = EpisodeStats(
                 (1,), has_success=success is not None, has_fail=fail is not None
             )
-        ep = stats.update(
-            torch.as_tensor(reward),
-            None if success is None else torch.as_tensor(success),
-            None if fail is None else torch.as_tensor(fail),
-        )
+        ep = stats.update(_tensor(reward), _tensor(success), _tensor(fail))
         # Key order and python / numpy types as ManiSkill's CPUGymWrapper.
         out: dict[str, Any] = {}
         if stats.has_success:
