@@ -7,6 +7,14 @@ allocator warm-up) hit every contender alike. Each contender's score is the
 median over rounds of its time per unit (per env step, usually); ratios are
 taken between medians.
 
+Two clocks are read around every timed call: wall time (``time.perf_counter``)
+and this process's CPU time (``time.process_time``, all its threads). The
+``clock`` argument of :func:`interleave` picks which one scores (``"wall"`` by
+default). On a machine shared with other busy processes, wall time also counts
+the time the benchmark waits for a core; CPU time does not, and is the steadier
+measure of what the code costs, as long as all the work happens in this process
+(use ``"wall"`` for contenders that use worker processes, e.g. ``ParallelEnv``).
+
 A contender is a callable ``run() -> int`` that does one round of work and
 returns the number of units it did (or ``None`` for the ``units`` given to
 :func:`interleave`). Untimed per-round set-up (a seeded reset, say) goes into
@@ -59,11 +67,24 @@ class Contender:
 
 @dataclass
 class Result:
-    """Per-round times per unit (seconds) of one contender."""
+    """Per-round times per unit (seconds) of one contender, on the scoring clock (``per_unit``)
+    and on both clocks (``per_unit_wall``, ``per_unit_cpu``)."""
 
     name: str
     per_unit: list[float] = field(default_factory=list)
     units: list[int] = field(default_factory=list)
+    clock: str = "wall"
+    per_unit_wall: list[float] = field(default_factory=list)
+    per_unit_cpu: list[float] = field(default_factory=list)
+
+    @property
+    def other_clock(self) -> str:
+        return "cpu" if self.clock == "wall" else "wall"
+
+    @property
+    def other_median(self) -> float:
+        """Median per unit on the clock that does not score."""
+        return statistics.median(self.per_unit_cpu if self.clock == "wall" else self.per_unit_wall)
 
     @property
     def median(self) -> float:
@@ -84,7 +105,10 @@ class Result:
             "median_s": self.median,
             "min_s": self.minimum,
             "spread": self.spread,
+            "clock": self.clock,
             "per_unit_s": self.per_unit,
+            "per_unit_wall_s": self.per_unit_wall,
+            "per_unit_cpu_s": self.per_unit_cpu,
             "units": self.units,
         }
 
@@ -96,18 +120,22 @@ def interleave(
     warmup: int = 1,
     units: int | None = None,
     gc_collect: bool = True,
+    clock: str = "wall",
     verbose: bool = False,
 ) -> dict[str, Result]:
     """Runs the contenders round-robin for ``warmup`` untimed then ``rounds`` timed rounds.
 
+    ``clock`` (``"wall"`` or ``"cpu"``) picks the clock that scores; both are recorded.
     Returns ``{name: Result}`` in the order of ``contenders``.
     """
     if not contenders:
         raise ValueError("interleave() needs at least one contender.")
+    if clock not in ("wall", "cpu"):
+        raise ValueError(f"clock must be 'wall' or 'cpu', got {clock!r}.")
     names = [c.name for c in contenders]
     if len(set(names)) != len(names):
         raise ValueError(f"Contender names must be unique, got {names}.")
-    results = {c.name: Result(c.name) for c in contenders}
+    results = {c.name: Result(c.name, clock=clock) for c in contenders}
     n = len(contenders)
     for r in range(warmup + rounds):
         timed = r >= warmup
@@ -117,9 +145,12 @@ def interleave(
                 c.setup()
             if gc_collect:
                 gc.collect()
+            c0 = time.process_time()
             t0 = time.perf_counter()
             done = c.run()
-            dt = time.perf_counter() - t0
+            dt_wall = time.perf_counter() - t0
+            dt_cpu = time.process_time() - c0
+            dt = dt_wall if clock == "wall" else dt_cpu
             count = done if done is not None else units
             if count is None or count <= 0:
                 raise ValueError(
@@ -127,11 +158,17 @@ def interleave(
                     "or pass units= to interleave()."
                 )
             if timed:
-                results[c.name].per_unit.append(dt / count)
-                results[c.name].units.append(count)
+                res = results[c.name]
+                res.per_unit.append(dt / count)
+                res.per_unit_wall.append(dt_wall / count)
+                res.per_unit_cpu.append(dt_cpu / count)
+                res.units.append(count)
             if verbose:
                 tag = "round" if timed else "warmup"
-                print(f"  {tag} {r - warmup if timed else r}: {c.name:<28} {1e6 * dt / count:9.1f} us/unit")
+                print(
+                    f"  {tag} {r - warmup if timed else r}: {c.name:<28} "
+                    f"{1e6 * dt_wall / count:9.1f} us/unit wall {1e6 * dt_cpu / count:9.1f} cpu"
+                )
     return results
 
 
@@ -152,19 +189,24 @@ def report(
     for a baseline that does next to nothing)."""
     if baseline is None:
         baseline = next(iter(results))
+    first = results[baseline]
+    clk, other = first.clock, first.other_clock
     last = f"us/{unit} over {baseline}" if difference else f"ratio to {baseline}"
     rows = [
-        f"| contender | median us/{unit} | min us/{unit} | spread | {last} |",
-        "|---|---:|---:|---:|---:|",
+        f"| contender | median us/{unit} ({clk}) | min | spread | {last} | median ({other}) | ratio ({other}) |",
+        "|---|---:|---:|---:|---:|---:|---:|",
     ]
-    base = results[baseline].median
+    base, base_other = first.median, first.other_median
     for name, res in results.items():
-        cmp = (
-            f"{1e6 * (res.median - base):+.1f}" if difference else f"{ratio(results, name, baseline):.3f}x"
-        )
+        if difference:
+            cmp = f"{1e6 * (res.median - base):+.1f}"
+            cmp_other = f"{1e6 * (res.other_median - base_other):+.1f} us"
+        else:
+            cmp = f"{ratio(results, name, baseline):.3f}x"
+            cmp_other = f"{res.other_median / base_other:.3f}x"
         rows.append(
             f"| {name} | {1e6 * res.median:.1f} | {1e6 * res.minimum:.1f} | "
-            f"{100 * res.spread:.1f}% | {cmp} |"
+            f"{100 * res.spread:.1f}% | {cmp} | {1e6 * res.other_median:.1f} | {cmp_other} |"
         )
     return "\n".join(rows)
 
