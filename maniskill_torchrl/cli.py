@@ -25,6 +25,7 @@ import json
 import math
 import os
 import sys
+import threading
 import time
 import warnings
 from collections.abc import Sequence
@@ -283,18 +284,22 @@ def run_demo(args: argparse.Namespace) -> int:
     env_kwargs = env_kwargs_for(args.env_id, policy_name)
 
     t_start = time.perf_counter()
-    episodes, stats = _collect(args, policy_name, env_kwargs)
+    episodes, closer, stats = _collect(args, policy_name, env_kwargs)
     collect_s = time.perf_counter() - t_start
 
     files = {"plot": str(out / "returns.png")}
-    plot_returns(episodes, out / "returns.png", title=f"{args.env_id}: {policy_name} policy, "
-                 f"{args.workers} workers, ActionRepeat({args.repeat})")
-    if not args.no_video:
-        video_path = out / "rollout.mp4"
-        n = record_video(args.env_id, args.repeat, env_kwargs, policy_name, video_path,
-                         steps=args.video_steps, size=args.video_size, seed=args.seed)
-        files["video"] = str(video_path)
-        stats["video_frames"] = n
+    try:
+        plot_returns(episodes, out / "returns.png", title=f"{args.env_id}: {policy_name} policy, "
+                     f"{args.workers} workers, ActionRepeat({args.repeat})")
+        if not args.no_video:
+            video_path = out / "rollout.mp4"
+            n = record_video(args.env_id, args.repeat, env_kwargs, policy_name, video_path,
+                             steps=args.video_steps, size=args.video_size, seed=args.seed)
+            files["video"] = str(video_path)
+            stats["video_frames"] = n
+    finally:
+        if closer is not None:
+            closer.join()
 
     summary = {
         "env_id": args.env_id,
@@ -304,17 +309,18 @@ def run_demo(args: argparse.Namespace) -> int:
         "seed": args.seed,
         **stats,
         "collect_wall_s": round(collect_s, 2),
+        "wall_s": round(time.perf_counter() - t_start, 2),
         "files": files,
         "episodes": episodes,
     }
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))
     files["summary"] = str(out / "summary.json")
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
     print_summary(summary)
     return 0
 
 
 def _collect(args: argparse.Namespace, policy_name: str, env_kwargs: dict[str, Any]):
-    """Runs the collector; returns the finished episodes and throughput numbers."""
+    """Runs the collector; returns the finished episodes, the (started) shutdown thread and throughput numbers."""
     from torchrl.collectors import Collector, RandomPolicy
     from torchrl.envs import ParallelEnv
     from tqdm import tqdm
@@ -328,7 +334,10 @@ def _collect(args: argparse.Namespace, policy_name: str, env_kwargs: dict[str, A
     t0 = time.perf_counter()
     # metadata_from_workers: the specs come from a worker, so the main process never builds
     # a simulator (no SAPIEN start-up here, ~1 s saved).
-    env = ParallelEnv(args.workers, make_env, mp_start_method="spawn", metadata_from_workers=True)
+    # shutdown_timeout: a worker that has closed its env but is still exiting (SAPIEN teardown
+    # takes seconds on a busy CPU) is terminated after this grace period.
+    env = ParallelEnv(args.workers, make_env, mp_start_method="spawn", metadata_from_workers=True,
+                      shutdown_timeout=3.0)
     env.set_seed(args.seed)
     if policy_name == "scripted":
         policy = make_scripted_policy(noise=SCRIPTED_NOISE, seed=args.seed)
@@ -338,7 +347,9 @@ def _collect(args: argparse.Namespace, policy_name: str, env_kwargs: dict[str, A
         env,
         policy,
         frames_per_batch=frames_per_batch,
-        total_frames=total_frames,
+        # Endless, stopped by the loop below: with a frame budget the Collector closes the
+        # ParallelEnv (seconds of worker teardown) before it hands over the last batch.
+        total_frames=-1,
         # Neither policy keeps a recurrent state: no InitTracker needed.
         auto_register_policy_transforms=False,
     )
@@ -359,14 +370,18 @@ def _collect(args: argparse.Namespace, policy_name: str, env_kwargs: dict[str, A
             episodes.extend(_finished_episodes(batch))
             bar.update(batch.numel())
             bar.set_postfix(episodes=len(episodes))
+            if frames >= total_frames:
+                break
     finally:
+        t_end = time.perf_counter()
         bar.close()
-        collector.shutdown()
-        if not env.is_closed:
-            env.close()
-    steady_s = time.perf_counter() - t_first
+        # Worker teardown takes seconds: it runs in the background while the plot and video
+        # are made; run_demo joins it before returning.
+        closer = threading.Thread(target=_shutdown, args=(collector, env), name="demo-shutdown")
+        closer.start()
+    steady_s = t_end - t_first
     steady_frames = frames - first_frames
-    return episodes, {
+    return episodes, closer, {
         "frames": frames,
         "sim_steps": sim_steps,
         "startup_s": round(startup_s, 2),
@@ -374,6 +389,12 @@ def _collect(args: argparse.Namespace, policy_name: str, env_kwargs: dict[str, A
         "sim_steps_per_s": round(steady_frames / steady_s * sim_steps / frames, 1) if steady_frames else None,
         "episodes_finished": len(episodes),
     }
+
+
+def _shutdown(collector, env) -> None:
+    collector.shutdown()
+    if not env.is_closed:
+        env.close()
 
 
 def _sim_steps(batch) -> int:
@@ -433,6 +454,7 @@ def print_summary(summary: dict[str, Any]) -> None:
         ("start-up + 1st batch", fmt(summary["startup_s"], ".1f", " s")),
         ("frames/s (steady)", fmt(summary["frames_per_s"], ".1f")),
         ("sim steps/s (steady)", fmt(summary["sim_steps_per_s"], ".1f")),
+        ("run time", f"{summary['wall_s']:.1f} s (collection {summary['collect_wall_s']:.1f} s)"),
         ("episodes finished", f"{summary['episodes_finished']}"),
         ("mean episode length", fmt(means["mean_episode_len"], ".1f", " agent steps")),
         ("mean return", fmt(means["mean_return"], ".3f")),
