@@ -120,7 +120,8 @@ class PickCubeScriptedPolicy(nn.Module):
     It reads only the task's own relative positions, so it works batched or not.
     ``pd_ee_delta_pos`` maps an action of 1 to a 0.1 m end-effector target
     offset; the arm does not reach it within one sim step, so the same gain works
-    with and without action repeat (10/10 successes on seeds 0-9 with repeat 1 and 2).
+    with and without action repeat (the default demo, repeat 2 and noise 0.05:
+    208 of 209 episodes succeed, in 14 agent steps on average).
 
     Args:
         noise: std of Gaussian noise added to the arm action (0 = deterministic),
