@@ -26,7 +26,8 @@ class ActionRepeat(Transform):
 
     The inner loop stops as soon as every env is done. Reward and done entries
     are the parent's ``reward_keys`` / ``done_keys``, nested and multi-agent
-    ones included; an env counts as done when any of its done entries is True.
+    ones included; an env has ended when any of its ``"done"`` entries (at any
+    level, for any agent) is True.
 
     Envs that have ended are not stepped again where the parent can skip them:
     on a :class:`~torchrl.envs.SerialEnv` / :class:`~torchrl.envs.ParallelEnv`
@@ -35,6 +36,9 @@ class ActionRepeat(Transform):
     One batch-locked simulator (:class:`~maniskill_torchrl.ManiSkillWrapper`,
     ManiSkill's GPU sim) steps all its envs together; the results of the
     finished ones are discarded, as ManiSkill's ``ActionRepeatWrapper`` does.
+    Placed inside each worker instead (``ParallelEnv(n, lambda:
+    TransformedEnv(ManiSkillEnv(...), Compose(CPUUnbatch(), ActionRepeat(k))))``)
+    every worker stops on its own.
 
     Specs are unchanged. Transforms placed before this one act on every inner
     step (a :class:`~torchrl.envs.StepCounter` there counts inner steps: state
@@ -75,7 +79,7 @@ class ActionRepeat(Transform):
         super().__init__()
         self.repeat = repeat
         self._stash: TensorDictBase | None = None
-        self._cache: tuple | None = None
+        self._cache: _ParentInfo | None = None
 
     # ------------------------------------------------------------- internals
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -120,7 +124,8 @@ class ActionRepeat(Transform):
             running = running & outer_mask.reshape(running.shape)
         n_envs = running.numel()
         acc = new = next_tensordict
-        for _ in range(self.repeat - 1):
+        last = self.repeat - 1
+        for i in range(1, self.repeat):
             # One host sync per inner step (ManiSkill's wrapper has two).
             n_running = int(running.sum())
             if n_running == 0:
@@ -136,7 +141,8 @@ class ActionRepeat(Transform):
             new = info.step(td)
             # All envs running: a plain fold, no masking at all.
             acc = merge_step(acc, new, None if all_running else running, reward_keys, done_keys)
-            running = running & ~any_done(new, stop_keys)
+            if i < last:
+                running = running & ~any_done(new, stop_keys)
         return acc
 
     def __repr__(self) -> str:
