@@ -192,8 +192,9 @@ def report(
     first = results[baseline]
     clk, other = first.clock, first.other_clock
     last = f"us/{unit} over {baseline}" if difference else f"ratio to {baseline}"
+    last_other = f"over {baseline} ({other})" if difference else f"ratio ({other})"
     rows = [
-        f"| contender | median us/{unit} ({clk}) | min | spread | {last} | median ({other}) | ratio ({other}) |",
+        f"| contender | median us/{unit} ({clk}) | min | spread | {last} | median ({other}) | {last_other} |",
         "|---|---:|---:|---:|---:|---:|---:|",
     ]
     base, base_other = first.median, first.other_median
