@@ -96,10 +96,11 @@ def _compare_with_maniskill(gym_env, ours, repeat, seeds, actions, unbatched=Fal
             out = ours.step(td)
             nxt = out.get("next")
             _assert_obs_infos(nxt, obs, info, unbatched)
-            _assert_same(nxt.get("reward"), rew.reshape(nxt.get("reward").shape), "reward")
-            _assert_same(nxt.get("terminated"), term.reshape(-1, 1)[0] if unbatched else term.reshape(-1, 1), "terminated")
-            _assert_same(nxt.get("truncated"), trunc.reshape(-1, 1)[0] if unbatched else trunc.reshape(-1, 1), "truncated")
-            _assert_same(nxt.get("done"), (term | trunc).reshape(nxt.get("done").shape), "done")
+            # reward [B] -> [B, 1] ([1] unbatched), flags likewise; dtypes must match too
+            for key, want in (("reward", rew), ("terminated", term), ("truncated", trunc), ("done", term | trunc)):
+                got = nxt.get(key)
+                assert got.shape == ((1,) if unbatched else (want.shape[0], 1)), (key, got.shape)
+                _assert_same(got, want.reshape(got.shape), key)
             if (term | trunc).any():
                 lengths.append(int(info["elapsed_steps"].reshape(-1)[0]))
                 break
@@ -174,7 +175,7 @@ def test_equals_maniskill_with_cpu_unbatch(cartpole_pair):
 
 
 # ============================================================================ per-env reference
-def _reference_step(state, ends, terminate, repeat, action, partial, multi_agent):
+def _reference_step(state, ends, terminate, repeat, action, partial, multi_agent, done_once=False):
     """One outer step, env by env, written plainly: returns the expected "next" entries.
 
     ``state`` holds per env ``t`` (steps since reset), ``count`` (real steps so far, the toy's
@@ -182,6 +183,10 @@ def _reference_step(state, ends, terminate, repeat, action, partial, multi_agent
     """
     n = len(ends)
     rows, taken = [], []
+
+    def ended(i, t):  # sticky, or (done_once) an event at the end step only
+        return t == ends[i] if done_once else t >= ends[i]
+
     for i in range(n):
         t0 = state["t"][i]
         k, ret, agents_ret = 0, None, [None, None]
@@ -193,11 +198,11 @@ def _reference_step(state, ends, terminate, repeat, action, partial, multi_agent
             for a in range(2):
                 ra = r * (a + 1)
                 agents_ret[a] = ra if agents_ret[a] is None else agents_ret[a] + ra
-            if t >= ends[i]:
+            if ended(i, t):
                 break
         taken.append(k)
         t = t0 + k
-        done = t >= ends[i]
+        done = ended(i, t)
         term, trunc = done and terminate[i], done and not terminate[i]
         row = {
             "observation": torch.tensor([float(t), float(i), float(action[i, 0])]),
@@ -243,20 +248,21 @@ def _scenarios(draw):
         outer=draw(st.integers(1, 4)),
         auto_reset=draw(st.booleans()),
         multi_agent=draw(st.booleans()),
+        done_once=draw(st.booleans()),
         seed=draw(st.integers(0, 2**16)),
     )
 
 
 @pytest.mark.parametrize("partial", [False, True], ids=["one-batched-env", "SerialEnv"])
-@settings(max_examples=30, deadline=None, derandomize=True)
+@settings(max_examples=30, deadline=None, derandomize=True, database=None)
 @given(sc=_scenarios())
 def test_matches_per_env_reference(partial, sc):
     ends, terminate, repeat = sc["ends"], sc["terminate"], sc["repeat"]
     n = len(ends)
     if partial:
-        base = serial_toy_env(ends, terminate, multi_agent=sc["multi_agent"])
+        base = serial_toy_env(ends, terminate, multi_agent=sc["multi_agent"], done_once=sc["done_once"])
     else:
-        base = ToyEnv(ends, terminate=terminate, multi_agent=sc["multi_agent"])
+        base = ToyEnv(ends, terminate=terminate, multi_agent=sc["multi_agent"], done_once=sc["done_once"])
     env = TransformedEnv(base, ActionRepeat(repeat))
     g = torch.Generator().manual_seed(sc["seed"])
     state = {"t": [0] * n, "count": [0] * n}
@@ -266,7 +272,7 @@ def test_matches_per_env_reference(partial, sc):
         action = torch.rand(n, 2, generator=g) * 2 - 1
         td.set("action", action)
         expected, taken = _reference_step(
-            state, ends, terminate, repeat, action, partial, sc["multi_agent"]
+            state, ends, terminate, repeat, action, partial, sc["multi_agent"], sc["done_once"]
         )
         if sc["auto_reset"]:
             out, td = env.step_and_maybe_reset(td)
