@@ -15,7 +15,6 @@ import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from tensordict import TensorDict
 from torchrl.envs import (
     Compose,
     FrameSkipTransform,
@@ -28,7 +27,7 @@ from torchrl.envs import (
 from torchrl.envs.utils import check_env_specs, step_mdp
 
 from conftest import make_gym_env, random_actions
-from maniskill_torchrl import ActionRepeat, ManiSkillEnv, ManiSkillWrapper
+from maniskill_torchrl import ActionRepeat, ManiSkillEnv
 from maniskill_torchrl.transforms import ActionRepeat as ActionRepeatFromTransforms
 from toy_env import ToyEnv, serial_toy_env, toy_nested, toy_reward
 
@@ -458,4 +457,3 @@ def test_bad_repeat(bad):
 def test_exported_and_repr():
     assert ActionRepeat is ActionRepeatFromTransforms
     assert repr(ActionRepeat(4)) == "ActionRepeat(repeat=4)"
-    assert ManiSkillWrapper is not None
