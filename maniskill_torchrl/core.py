@@ -67,26 +67,33 @@ def merge_step(
         >>> out["reward"].squeeze(-1).tolist(), out["obs"][:, 0].tolist()
         ([1.0, 2.0], [0.0, 1.0])
     """
-    out = _copy(new, reward_keys, done_keys)
-    for key in reward_keys:
-        out.set(key, acc.get(key) + new.get(key))
-    for key in done_keys:
-        out.set(key, acc.get(key) | new.get(key))
+    if _top_level_only(new, reward_keys, done_keys):
+        # This runs once per inner step of an action repeat: build the output's top-level
+        # dict directly (no copy of nested containers, no per-entry validation; 3x faster).
+        source = new._tensordict.copy()
+        for key in reward_keys:
+            source[key] = acc.get(key) + new.get(key)
+        for key in done_keys:
+            source[key] = acc.get(key) | new.get(key)
+        out = TensorDict._new_unsafe(source, batch_size=new.batch_size, device=new.device)
+    else:
+        out = new.copy()
+        for key in reward_keys:
+            out.set(key, acc.get(key) + new.get(key))
+        for key in done_keys:
+            out.set(key, acc.get(key) | new.get(key))
     if running is None:
         return out
     return _where(running, out, acc)
 
 
-def _copy(td: TensorDictBase, *key_lists: Sequence[NestedKey]) -> TensorDictBase:
-    """``td.copy()``; where only top-level keys will be set on the copy, a copy of the top-level
-    container alone (about 5x faster: this runs once per inner step of an action repeat)."""
-    if (
+def _top_level_only(td: TensorDictBase, *key_lists: Sequence[NestedKey]) -> bool:
+    """Whether ``td`` is a plain TensorDict and every key to set on its copy is top-level."""
+    return (
         type(td) is TensorDict
         and not td._has_names()
         and all(isinstance(k, str) for keys in key_lists for k in keys)
-    ):
-        return TensorDict._new_unsafe(td._tensordict.copy(), batch_size=td.batch_size, device=td.device)
-    return td.copy()
+    )
 
 
 def _where(mask: torch.Tensor, a: TensorDictBase, b: TensorDictBase) -> TensorDictBase:
