@@ -27,6 +27,9 @@ from maniskill_torchrl.core import EpisodeStats
 from maniskill_torchrl.wrappers import ActionRepeatWrapper, CPUGymWrapper
 from maniskill_torchrl.wrappers._common import np_unbatch
 
+# MS-CartpoleBalance-v1's float64 Box bounds: gymnasium's casting warning, not ours.
+pytestmark = pytest.mark.filterwarnings("ignore:.*precision lowered by casting")
+
 
 # ----------------------------------------------------------------------------- comparison
 def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
