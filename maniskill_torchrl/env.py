@@ -19,6 +19,7 @@ from torchrl.data.utils import DEVICE_TYPING
 from torchrl.envs.common import _EnvWrapper
 from torchrl.envs.utils import _classproperty
 
+from maniskill_torchrl._maniskill import maniskill_base_env, wrapper_attr
 from maniskill_torchrl.specs import (
     done_spec,
     info_spec_from_infos,
@@ -32,20 +33,6 @@ __all__ = ["ManiSkillWrapper", "ManiSkillEnv"]
 _has_maniskill = importlib.util.find_spec("mani_skill") is not None
 
 _CPU_BACKENDS = ("cpu", "physx_cpu")
-
-
-def _maniskill_base_env(env: Any):
-    """The ManiSkill ``BaseEnv`` under ``env`` (through any gym wrappers), or ``None``."""
-    from mani_skill.envs.sapien_env import BaseEnv
-
-    base = getattr(env, "unwrapped", None)
-    return base if isinstance(base, BaseEnv) else None
-
-
-def _wrapper_attr(env: Any, name: str) -> Any:
-    """An attribute from the outermost gym wrapper that defines it (ManiSkill's wrappers may override spaces)."""
-    get = getattr(env, "get_wrapper_attr", None)
-    return get(name) if get is not None else getattr(env, name)
 
 
 class ManiSkillWrapper(_EnvWrapper):
@@ -137,7 +124,7 @@ class ManiSkillWrapper(_EnvWrapper):
                 "ManiSkillWrapper needs a ManiSkill env: ManiSkillWrapper(gym.make('PickCube-v1')) "
                 "or ManiSkillEnv('PickCube-v1')."
             )
-        base = _maniskill_base_env(env)
+        base = maniskill_base_env(env)
         if base is None:
             raise TypeError(
                 f"ManiSkillWrapper wraps ManiSkill 3 envs only, got {type(env).__name__} "
@@ -197,8 +184,8 @@ class ManiSkillWrapper(_EnvWrapper):
     def _make_specs(self, env: Any) -> None:
         base = env.unwrapped
         batch, device = self.batch_size, self.device
-        obs_space = _wrapper_attr(env, "single_observation_space")
-        act_space = _wrapper_attr(env, "single_action_space")
+        obs_space = wrapper_attr(env, "single_observation_space")
+        act_space = wrapper_attr(env, "single_action_space")
 
         obs_spec = observation_spec_from_space(obs_space, batch, device)
         self._obs_is_dict = isinstance(obs_space, gym.spaces.Dict)

@@ -7,7 +7,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from maniskill_torchrl.env import _maniskill_base_env
+from maniskill_torchrl._maniskill import maniskill_base_env
 
 __all__ = ["np_unbatch", "require_maniskill_env"]
 
@@ -44,7 +44,7 @@ def np_unbatch(x: Any) -> Any:
 
 def require_maniskill_env(env: Any, wrapper: str):
     """The ManiSkill ``BaseEnv`` under ``env``; a TypeError naming the fix otherwise."""
-    base = _maniskill_base_env(env) if isinstance(env, gym.Env) else None
+    base = maniskill_base_env(env) if isinstance(env, gym.Env) else None
     if base is None:
         raise TypeError(
             f"{wrapper} wraps ManiSkill 3 envs only, got {type(env).__name__} "
