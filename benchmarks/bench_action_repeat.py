@@ -41,20 +41,12 @@ import warnings
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from common import Contender, interleave, machine_line, ratio, report, save_json  # noqa: E402
+from common import Contender, interleave, machine_line, make_actions, ratio, report, save_json  # noqa: E402
 
 warnings.filterwarnings("ignore")
 
 TARGET = 1.10
 SEED = 0
-
-
-def make_actions(space, n: int, batch: tuple = (1,), seed: int = 0) -> list[torch.Tensor]:
-    """``n`` uniform float32 actions of shape ``[*batch, *space.shape]`` within the space's bounds."""
-    g = torch.Generator().manual_seed(seed)
-    low = torch.as_tensor(space.low, dtype=torch.float32)
-    high = torch.as_tensor(space.high, dtype=torch.float32)
-    return [low + (high - low) * torch.rand(batch + tuple(space.shape), generator=g) for _ in range(n)]
 
 
 # ----------------------------------------------------------------------------- overhead
@@ -71,7 +63,7 @@ def scenario_overhead(steps: int, repeat: int, rounds: int, warmup: int, verbose
     base = ManiSkillWrapper(gym_env)
     ours = TransformedEnv(base, ActionRepeat(repeat))
     frameskip = TransformedEnv(base, FrameSkipTransform(repeat))
-    actions = make_actions(gym_env.unwrapped.single_action_space, steps)
+    actions = make_actions(gym_env.unwrapped.single_action_space, steps, batch=(1,))
     state = {}
 
     def setup_oracle():

@@ -42,7 +42,7 @@ import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from common import Contender, interleave, machine_line, ratio, report, save_json  # noqa: E402
+from common import Contender, interleave, machine_line, make_actions, ratio, report, save_json  # noqa: E402
 
 warnings.filterwarnings("ignore")
 
@@ -50,31 +50,13 @@ TARGET = 1.10
 SEED = 0
 
 
-def make_actions(env, n: int, seed: int = 0) -> list[torch.Tensor]:
+def env_actions(env, n: int, seed: int = 0) -> list[torch.Tensor]:
     """``n`` uniform actions, each ``[1, *action_shape]`` float32, from the env's action bounds."""
-    space = env.unwrapped.single_action_space
-    g = torch.Generator().manual_seed(seed)
-    low = torch.as_tensor(space.low, dtype=torch.float32)
-    high = torch.as_tensor(space.high, dtype=torch.float32)
-    return [(low + (high - low) * torch.rand(space.shape, generator=g)).unsqueeze(0) for _ in range(n)]
+    return make_actions(env.unwrapped.single_action_space, n, batch=(1,), seed=seed)
 
 
-def scenario_step(steps: int, rounds: int, warmup: int, verbose: bool, clock: str = "cpu"):
-    from maniskill_torchrl import ManiSkillEnv
-
-    env = ManiSkillEnv("PickCube-v1", obs_mode="state", max_episode_steps=10 * steps + 100)
-    raw = env._env  # the gym env ManiSkillEnv made: same instance, same physics work
-    actions = make_actions(raw, steps)
-    state = {}
-
-    def setup_raw():
-        raw.reset(seed=SEED)
-
-    def run_raw():
-        step = raw.step
-        for a in actions:
-            step(a)
-        return len(actions)
+def step_contenders(env, actions, state) -> list[Contender]:
+    """``ManiSkillEnv.step`` (td reused, ``td["action"]`` set each step) and ``step_and_maybe_reset``."""
 
     def setup_td():
         state["td"] = env.reset(seed=SEED)
@@ -93,11 +75,33 @@ def scenario_step(steps: int, rounds: int, warmup: int, verbose: bool, clock: st
             _, td = smr(td)
         return len(actions)
 
+    return [
+        Contender("ManiSkillEnv.step", run_step, setup_td),
+        Contender("step_and_maybe_reset", run_smr, setup_td),
+    ]
+
+
+def scenario_step(steps: int, rounds: int, warmup: int, verbose: bool, clock: str = "cpu"):
+    from maniskill_torchrl import ManiSkillEnv
+
+    env = ManiSkillEnv("PickCube-v1", obs_mode="state", max_episode_steps=10 * steps + 100)
+    raw = env._env  # the gym env ManiSkillEnv made: same instance, same physics work
+    actions = env_actions(raw, steps)
+    state = {}
+
+    def setup_raw():
+        raw.reset(seed=SEED)
+
+    def run_raw():
+        step = raw.step
+        for a in actions:
+            step(a)
+        return len(actions)
+
     results = interleave(
         [
             Contender("raw", run_raw, setup_raw),
-            Contender("ManiSkillEnv.step", run_step, setup_td),
-            Contender("step_and_maybe_reset", run_smr, setup_td),
+            *step_contenders(env, actions, state),
         ],
         rounds=rounds,
         warmup=warmup,
@@ -113,7 +117,7 @@ def scenario_episodes(steps: int, rounds: int, warmup: int, verbose: bool, clock
 
     env = ManiSkillEnv("PickCube-v1", obs_mode="state")  # 50-step episodes
     raw = env._env
-    actions = make_actions(raw, steps, seed=1)
+    actions = env_actions(raw, steps, seed=1)
     state = {}
 
     def setup_raw():
@@ -179,7 +183,7 @@ def scenario_overhead(steps: int, rounds: int, warmup: int, verbose: bool, clock
 
     env = ManiSkillEnv("PickCube-v1", obs_mode="state", max_episode_steps=10 * steps + 100)
     real = env._env
-    actions = make_actions(real, steps)
+    actions = env_actions(real, steps)
     real.reset(seed=SEED)
     stub = _ReplayStub(real, real.step(actions[0]))
     env._env = stub
@@ -191,28 +195,10 @@ def scenario_overhead(steps: int, rounds: int, warmup: int, verbose: bool, clock
             step(a)
         return len(actions)
 
-    def setup_td():
-        state["td"] = env.reset(seed=SEED)
-
-    def run_step():
-        td, step = state["td"], env.step
-        for a in actions:
-            td.set("action", a)
-            step(td)
-        return len(actions)
-
-    def run_smr():
-        td, smr = state["td"], env.step_and_maybe_reset
-        for a in actions:
-            td.set("action", a)
-            _, td = smr(td)
-        return len(actions)
-
     results = interleave(
         [
             Contender("stub", run_raw),
-            Contender("ManiSkillEnv.step", run_step, setup_td),
-            Contender("step_and_maybe_reset", run_smr, setup_td),
+            *step_contenders(env, actions, state),
         ],
         rounds=rounds,
         warmup=warmup,
@@ -233,7 +219,7 @@ def scenario_paired(steps: int, rounds: int, warmup: int):
 
     env = ManiSkillEnv("PickCube-v1", obs_mode="state", max_episode_steps=10 * steps + 100)
     raw = env._env
-    actions = make_actions(raw, steps, seed=2)
+    actions = env_actions(raw, steps, seed=2)
     names = ["raw", "ManiSkillEnv.step", "step_and_maybe_reset"]
     times = {n: [] for n in names}
     clock = time.process_time

@@ -39,20 +39,12 @@ import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from common import Contender, machine_line, save_json  # noqa: E402
+from common import Contender, machine_line, make_actions, save_json  # noqa: E402
 
 warnings.filterwarnings("ignore")
 
 TARGET = 1.05
 SEED = 0
-
-
-def make_actions(space, n: int, seed: int = 0) -> list[torch.Tensor]:
-    """``n`` uniform float32 actions of the single action space's shape."""
-    g = torch.Generator().manual_seed(seed)
-    low = torch.as_tensor(space.low, dtype=torch.float32)
-    high = torch.as_tensor(space.high, dtype=torch.float32)
-    return [low + (high - low) * torch.rand(space.shape, generator=g) for _ in range(n)]
 
 
 def _loop_unbatched(env, actions, seeds):

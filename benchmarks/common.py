@@ -53,6 +53,7 @@ __all__ = [
     "machine_info",
     "machine_line",
     "save_json",
+    "make_actions",
 ]
 
 
@@ -260,3 +261,13 @@ def save_json(path: str, payload: dict) -> None:
     payload = {"machine": machine_info(), **payload}
     with open(path, "w") as f:
         json.dump(payload, f, indent=2, default=str)
+
+
+def make_actions(space, n: int, batch: tuple = (), seed: int = 0) -> list:
+    """``n`` reproducible uniform float32 actions of shape ``[*batch, *space.shape]`` within a Box's bounds."""
+    import torch
+
+    g = torch.Generator().manual_seed(seed)
+    low = torch.as_tensor(space.low, dtype=torch.float32)
+    high = torch.as_tensor(space.high, dtype=torch.float32)
+    return [low + (high - low) * torch.rand(tuple(batch) + tuple(space.shape), generator=g) for _ in range(n)]
