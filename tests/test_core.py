@@ -112,16 +112,20 @@ def test_merge_step_against_per_env_reference(done_before, done_new, seed):
         )
 
     acc, new = td(done_before), td(done_new)
+    # Expected values come from copies taken before the call: an in-place merge into `acc`
+    # (or `new`) must not make the reference alias the output.
+    acc0, new0 = acc.clone(), new.clone()
     running = ~any_done(acc, ["done"])
     out = merge_step(acc, new, running, ["reward", ("agents", "reward")], ["done"])
     for i in range(b):
         if running[i]:
-            assert torch.equal(out["reward"][i], acc["reward"][i] + new["reward"][i])
-            assert torch.equal(out["agents", "reward"][i], acc["agents", "reward"][i] + new["agents", "reward"][i])
+            assert torch.equal(out["reward"][i], acc0["reward"][i] + new0["reward"][i])
+            assert torch.equal(out["agents", "reward"][i], acc0["agents", "reward"][i] + new0["agents", "reward"][i])
             assert out["done"][i].item() == (done_before[i] or done_new[i])
-            assert torch.equal(out["obs"][i], new["obs"][i])
-            assert torch.equal(out["nested", "img"][i], new["nested", "img"][i])
+            assert torch.equal(out["obs"][i], new0["obs"][i])
+            assert torch.equal(out["nested", "img"][i], new0["nested", "img"][i])
         else:
-            assert (out[i] == acc[i]).all()
+            assert (out[i] == acc0[i]).all()
     # the inputs are left untouched
     assert torch.equal(acc["done"].view(-1), torch.tensor(done_before))
+    assert (acc == acc0).all() and (new == new0).all()
