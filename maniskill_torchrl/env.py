@@ -283,7 +283,6 @@ class ManiSkillWrapper(_EnvWrapper):
         source = self._to_tensordict(obs, info)
         # ManiSkill gives [B] tensors: unsqueeze is the cheapest way to [B, 1] (view(shape) costs
         # twice as much on the CPU sim, where each op counts); other shapes go through view.
-        shape = self._done_shape
         done = torch.logical_or(terminated, truncated)
         if reward.ndim == terminated.ndim == truncated.ndim == 1:
             source["reward"] = reward.unsqueeze(-1)
@@ -291,6 +290,7 @@ class ManiSkillWrapper(_EnvWrapper):
             source["truncated"] = truncated.unsqueeze(-1)
             source["done"] = done.unsqueeze(-1)
         else:
+            shape = self.batch_size + (1,)
             source["reward"] = reward.view(shape)
             source["terminated"] = terminated.view(shape)
             source["truncated"] = truncated.view(shape)
@@ -304,13 +304,6 @@ class ManiSkillWrapper(_EnvWrapper):
         if self.run_type_checks:
             return super()._step_proc_data(next_tensordict_out)
         return next_tensordict_out
-
-    @property
-    def _done_shape(self) -> torch.Size:
-        shape = self.__dict__.get("_done_shape_val")
-        if shape is None:
-            shape = self._done_shape_val = self.batch_size + (1,)
-        return shape
 
     def _reset(
         self,
