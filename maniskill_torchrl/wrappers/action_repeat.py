@@ -148,7 +148,9 @@ class ActionRepeatWrapper(_ManiSkillActionRepeatWrapper):
                 "that converts to numpy."
             )
         done = terminated | truncated
-        if done.all():
+        # One host sync per inner step: the number of envs done.
+        n_done = int(done.sum())
+        if n_done == done.numel():
             return first
         batch = done.shape[0]
         batch_size = torch.Size((batch,))
@@ -167,15 +169,16 @@ class ActionRepeatWrapper(_ManiSkillActionRepeatWrapper):
             )
 
         acc = pack(*first)
-        running = None if not done.any() else ~done
+        running = ~done if n_done else None
         last_obs, last_info = obs, info
         for _ in range(self.repeat - 1):
             last_obs, r, te, tr, last_info = self.env.step(action)
             acc = merge_step(acc, pack(last_obs, r, te, tr, last_info), running, _REWARD_KEYS, _DONE_KEYS)
             done = any_done(acc, _DONE_KEYS)
-            if done.all():
+            n_done = int(done.sum())
+            if n_done == done.numel():
                 break
-            running = None if not done.any() else ~done
+            running = ~done if n_done else None
 
         out_obs = _rebuild(obs, last_obs, acc.get("obs")) if obs_is_dict else acc.get("obs")
         return (
