@@ -231,6 +231,22 @@ class EpisodeStats:
         self._success_once = self._success_once.masked_fill(mask, False)
         self._fail_once = self._fail_once.masked_fill(mask, False)
 
+    def zeros(self) -> TensorDict:
+        """The ``"episode"`` TensorDict of a fresh episode (all zeros), as :meth:`update` lays it out."""
+        b, dev = self.batch_size, self.device
+        out = {
+            "return": torch.zeros(b, dtype=torch.float32, device=dev),
+            "episode_len": torch.zeros(b, dtype=torch.int64, device=dev),
+            "reward": torch.zeros(b, dtype=torch.float32, device=dev),
+        }
+        if self.has_success:
+            out["success_once"] = torch.zeros(b, dtype=torch.bool, device=dev)
+            out["success_at_end"] = torch.zeros(b, dtype=torch.bool, device=dev)
+        if self.has_fail:
+            out["fail_once"] = torch.zeros(b, dtype=torch.bool, device=dev)
+            out["fail_at_end"] = torch.zeros(b, dtype=torch.bool, device=dev)
+        return TensorDict._new_unsafe(out, batch_size=b, device=dev)
+
     def update(
         self,
         reward: torch.Tensor,

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from torchrl.data import Categorical, Composite, TensorSpec, Unbounded
 from torchrl.envs import Transform
 
@@ -87,7 +87,6 @@ class EpisodeMetrics(Transform):
         )
         self._reward_key = reward_keys[0]
         self._reset_keys = list(parent.reset_keys)
-        self._last = None
         return self._stats
 
     def set_container(self, container) -> None:
@@ -163,33 +162,17 @@ class EpisodeMetrics(Transform):
         mask = self._reset_mask(tensordict, stats.batch_size) if tensordict is not None else None
         if mask is None or self._last is None:
             stats.reset()
-            episode = self._zeros(stats)
+            episode = stats.zeros()
         else:
             # Zeros for the envs being reset, the others keep their running values. No
             # ``mask.all()`` shortcut: on the GPU sim it would sync the host at every reset.
             stats.reset(mask)
             episode = self._last.apply(
-                lambda last, zero: torch.where(mask, zero, last), self._zeros(stats)
+                lambda last, zero: torch.where(mask, zero, last), stats.zeros()
             )
         self._last = episode
         tensordict_reset.set("episode", episode)
         return tensordict_reset
-
-    @staticmethod
-    def _zeros(stats: EpisodeStats) -> TensorDict:
-        b, dev = stats.batch_size, stats.device
-        out = {
-            "return": torch.zeros(b, dtype=torch.float32, device=dev),
-            "episode_len": torch.zeros(b, dtype=torch.int64, device=dev),
-            "reward": torch.zeros(b, dtype=torch.float32, device=dev),
-        }
-        if stats.has_success:
-            out["success_once"] = torch.zeros(b, dtype=torch.bool, device=dev)
-            out["success_at_end"] = torch.zeros(b, dtype=torch.bool, device=dev)
-        if stats.has_fail:
-            out["fail_once"] = torch.zeros(b, dtype=torch.bool, device=dev)
-            out["fail_at_end"] = torch.zeros(b, dtype=torch.bool, device=dev)
-        return TensorDict._new_unsafe(out, batch_size=b, device=dev)
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}()"
