@@ -20,6 +20,7 @@ from torchrl.envs.common import _EnvWrapper
 from torchrl.envs.utils import _classproperty
 
 from maniskill_torchrl._maniskill import maniskill_base_env, wrapper_attr
+from maniskill_torchrl.cpu_vector import CPUVectorEnv
 from maniskill_torchrl.specs import (
     done_spec,
     info_spec_from_infos,
@@ -124,13 +125,13 @@ class ManiSkillWrapper(_EnvWrapper):
                 "ManiSkillWrapper needs a ManiSkill env: ManiSkillWrapper(gym.make('PickCube-v1')) "
                 "or ManiSkillEnv('PickCube-v1')."
             )
-        base = maniskill_base_env(env)
+        base = env if isinstance(env, CPUVectorEnv) else maniskill_base_env(env)
         if base is None:
             raise TypeError(
                 f"ManiSkillWrapper wraps ManiSkill 3 envs only, got {type(env).__name__} "
                 f"(unwrapped: {type(getattr(env, 'unwrapped', env)).__name__}). Make one with "
-                "gym.make('<Task>-v1', ...) after `import mani_skill.envs`; for other gym envs use "
-                "torchrl.envs.GymWrapper."
+                "gym.make('<Task>-v1', ...) after `import mani_skill.envs`, or CPUVectorEnv('<Task>-v1', N) "
+                "for N CPU-sim envs; for other gym envs use torchrl.envs.GymWrapper."
             )
         env_device = torch.device(base.device)
         if device is not None and torch.device(device) != env_device:
@@ -418,19 +419,17 @@ class ManiSkillEnv(ManiSkillWrapper):
             )
         if not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive int, got {num_envs!r}.")
-        backend = str(maniskill_kwargs.get("sim_backend", "auto")).lower()
-        if num_envs > 1 and (
-            backend in _CPU_BACKENDS or (backend == "auto" and not torch.cuda.is_available())
-        ):
-            raise ValueError(
-                f"num_envs={num_envs} needs ManiSkill's GPU sim, but this env would run on the CPU sim, "
-                "which holds one env per process. Use a TorchRL batched env of single envs instead: "
-                f"ParallelEnv({num_envs}, lambda: TransformedEnv(ManiSkillEnv({env_id!r}), CPUUnbatch()))."
-            )
         if from_pixels:
             maniskill_kwargs.setdefault("render_mode", "rgb_array")
         self._env_id = env_id
-        env = gym.make(env_id, num_envs=num_envs, **maniskill_kwargs)
+        backend = str(maniskill_kwargs.get("sim_backend", "auto")).lower()
+        on_cpu = backend in _CPU_BACKENDS or (backend == "auto" and not torch.cuda.is_available())
+        if num_envs > 1 and on_cpu:
+            # The CPU sim holds one env per process: one worker process per env.
+            maniskill_kwargs["sim_backend"] = "physx_cpu"
+            env = CPUVectorEnv(env_id, num_envs, **maniskill_kwargs)
+        else:
+            env = gym.make(env_id, num_envs=num_envs, **maniskill_kwargs)
         super().__init__(
             env,
             device=device,
