@@ -1,6 +1,6 @@
 # maniskill_torchrl developer targets. Run `make` for help.
 .DEFAULT_GOAL := help
-.PHONY: help setup test demo bench clean
+.PHONY: help setup test demo bench clean gpu-kit
 
 VENV        := .venv
 PYTEST_ARGS ?=
@@ -12,6 +12,7 @@ help:
 	@echo "  make test    run the test suite (PYTEST_ARGS=... passed to pytest)"
 	@echo "  make demo    run the demo CLI (DEMO_ARGS=... passed to 'maniskill-torchrl demo')"
 	@echo "  make bench   run benchmarks/run_all.py"
+	@echo "  make gpu-kit fill .gpu/ with the wheels and .debs for the GPU checks (benchmarks/README.md)"
 	@echo "  make clean   remove .venv and outputs/"
 
 setup:
@@ -28,3 +29,6 @@ bench: setup
 
 clean:
 	rm -rf $(VENV) outputs/
+
+gpu-kit:
+	@bash scripts/gpu_kit.sh
