@@ -1,6 +1,7 @@
 """ManiSkill 3 as a first-class TorchRL citizen.
 
 - :class:`ManiSkillEnv` / :class:`ManiSkillWrapper`: ManiSkill tasks as TorchRL envs.
+- :class:`CPUVectorEnv`: N CPU-sim envs in worker processes with the GPU sim's batched API.
 - :mod:`maniskill_torchrl.transforms`: ``ActionRepeat``, ``CPUUnbatch``,
   ``IgnoreTerminations``, ``EpisodeMetrics`` as TorchRL transforms.
 - :mod:`maniskill_torchrl.wrappers`: drop-in ``CPUGymWrapper`` / ``ActionRepeatWrapper``.
@@ -18,6 +19,7 @@ __version__ = "0.1.0"
 _EXPORTS = {
     "ManiSkillEnv": "maniskill_torchrl.env",
     "ManiSkillWrapper": "maniskill_torchrl.env",
+    "CPUVectorEnv": "maniskill_torchrl.cpu_vector",
     "ActionRepeat": "maniskill_torchrl.transforms",
     "CPUUnbatch": "maniskill_torchrl.transforms",
     "EpisodeMetrics": "maniskill_torchrl.transforms",
@@ -27,6 +29,7 @@ _EXPORTS = {
 __all__ = [*_EXPORTS, "__version__"]
 
 if TYPE_CHECKING:
+    from maniskill_torchrl.cpu_vector import CPUVectorEnv
     from maniskill_torchrl.env import ManiSkillEnv, ManiSkillWrapper
     from maniskill_torchrl.transforms import (
         ActionRepeat,

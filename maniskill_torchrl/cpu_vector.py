@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode
 
-from maniskill_torchrl._maniskill import maniskill_base_env, wrapper_attr
+from maniskill_torchrl._maniskill import maniskill_base_env, render_frame_shape, wrapper_attr
 
 __all__ = ["CPUVectorEnv"]
 
@@ -109,6 +109,9 @@ class _StepInObservation(gym.Wrapper):
         )
         self.action_space = wrapper_attr(env, "single_action_space")
 
+    def render_frame_shape(self) -> tuple[int, ...]:
+        return render_frame_shape(self.env.unwrapped)
+
     def _pack(self, obs: Any, info: Mapping, reward: Any, terminated: Any, truncated: Any) -> dict:
         return {
             _OBS: _unbatch(obs),
@@ -159,13 +162,15 @@ class CPUVectorEnv:
     info dict of ``[N, ...]`` tensors. Info tensors are views of the shared buffers that
     the next call overwrites (as ManiSkill's ``elapsed_steps`` is updated in place):
     clone what you keep. Seeding follows gymnasium's vector envs: ``reset(seed=s)``
-    resets sub-env ``i`` with ``seed=s + i``; ``reset(options={"env_idx": idx})`` resets
-    only those sub-envs, unseeded (each continues from its own seeded RNG, as a lone
-    env's unseeded resets do). All sub-envs are stepped together: gymnasium's
-    ``AsyncVectorEnv`` has no partial step.
+    resets sub-env ``i`` with ``seed=s + i``, and so does
+    ``reset(seed=s, options={"env_idx": idx})`` for the sub-envs in ``idx`` only (the
+    others keep running). Without a seed, a sub-env's reset is ManiSkill's unseeded
+    reset, which draws from its worker's global torch RNG. All sub-envs are stepped
+    together: gymnasium's ``AsyncVectorEnv`` has no partial step.
 
-    A failure in a worker is raised here, by the call that met it (gymnasium re-raises
-    the worker's exception, or an ``EOFError`` when the worker died).
+    A failure in a worker is raised here, by the call that met it: gymnasium re-raises
+    the worker's Python exception; a worker that died makes the call raise a
+    ``RuntimeError`` naming it, after the other workers are stopped.
     """
 
     gpu_sim_enabled = False
@@ -211,8 +216,11 @@ class CPUVectorEnv:
         return obs, reward, terminated, truncated, info
 
     def step(self, action: torch.Tensor | Mapping[str, torch.Tensor]):
-        self._vec.step_async(_to_numpy(action))
-        self._vec.step_wait()
+        try:
+            self._vec.step_async(_to_numpy(action))
+            self._vec.step_wait()
+        except (EOFError, OSError) as err:
+            raise self._worker_died("step") from err
         return self._read()
 
     def reset(self, *, seed: int | list[int] | None = None, options: dict | None = None):
@@ -221,11 +229,14 @@ class CPUVectorEnv:
         if env_idx is not None:
             mask = np.zeros(self.num_envs, dtype=np.bool_)
             mask[torch.as_tensor(env_idx, device="cpu").numpy()] = True
-            if mask.all():
-                options.pop("reset_mask", None)
-            else:
+            if not mask.all():
                 options["reset_mask"] = mask
-        self._vec.reset(seed=seed, options=options or None)
+                if isinstance(seed, int):  # gymnasium's convention, on the sub-envs being reset
+                    seed = [seed + i if m else None for i, m in enumerate(mask)]
+        try:
+            self._vec.reset(seed=seed, options=options or None)
+        except (EOFError, OSError) as err:
+            raise self._worker_died("reset") from err
         obs, _, _, _, info = self._read()
         return obs, info
 
@@ -233,9 +244,31 @@ class CPUVectorEnv:
         """Zeros shaped as the info entries (``[N, ...]``, ManiSkill's dtypes): the layout, no data."""
         return _zeros_tree(self._info_space, self.num_envs)
 
+    def render_frame_shape(self) -> tuple[int, ...]:
+        """``(H, W, 3)`` of one sub-env's ``render()`` frame, asked of worker 0."""
+        return self._vec.call("render_frame_shape")[0]
+
     def render(self) -> torch.Tensor:
         """Every worker's ``render()``, concatenated: ``[N, H, W, 3]`` uint8 for ``rgb_array``."""
         return torch.cat([torch.as_tensor(f) for f in self._vec.call("render")])
+
+    def _worker_died(self, call: str) -> RuntimeError:
+        """Tears the workers down (a dead one would leave the others waiting) and says which died."""
+        vec = self._vec
+        dead = [i for i, p in enumerate(vec.processes) if not p.is_alive()]
+        self._closed = vec.closed = True
+        for process in vec.processes:
+            if process.is_alive():
+                process.terminate()
+        for pipe in vec.parent_pipes:
+            pipe.close()
+        for process in vec.processes:
+            process.join(5)
+        return RuntimeError(
+            f"CPUVectorEnv worker(s) {dead} of {self.spec.id} died during {call}(); the env is closed. "
+            "Look for the worker's own error above (a crash in the simulator, or out of memory) and "
+            "make a new env."
+        )
 
     def close(self) -> None:
         if not self._closed:

@@ -19,7 +19,7 @@ from torchrl.data.utils import DEVICE_TYPING
 from torchrl.envs.common import _EnvWrapper
 from torchrl.envs.utils import _classproperty
 
-from maniskill_torchrl._maniskill import maniskill_base_env, wrapper_attr
+from maniskill_torchrl._maniskill import maniskill_base_env, render_frame_shape, wrapper_attr
 from maniskill_torchrl.cpu_vector import CPUVectorEnv
 from maniskill_torchrl.specs import (
     done_spec,
@@ -60,12 +60,20 @@ class ManiSkillWrapper(_EnvWrapper):
     ManiSkill's ``reset(seed=s)``; every later full reset is seeded with the next
     draw of ``numpy.random.RandomState(s)``, so a whole run is reproducible
     from ``s``. ``env.reset(seed=s)`` seeds one reset directly. Partial resets
-    (a ``"_reset"`` mask that is not all True, GPU sim only) reset only those
-    envs through ``options={"env_idx": ...}`` and are not seeded.
+    (a ``"_reset"`` mask that is not all True) reset only those envs through
+    ``options={"env_idx": ...}``: unseeded on the GPU sim, as ManiSkill does; on a
+    :class:`~maniskill_torchrl.cpu_vector.CPUVectorEnv` seeded with the next draw
+    ``d`` (sub-env ``i`` gets ``d + i``), so that CPU runs stay reproducible from
+    ``s`` whatever each worker's global torch RNG holds.
 
-    Partial steps: ManiSkill steps all of its envs together, so a ``"_step"``
-    mask is not honoured by this env (use a :class:`~torchrl.envs.ParallelEnv`
-    of single CPU envs for that).
+    Several CPU envs: wrap a :class:`~maniskill_torchrl.cpu_vector.CPUVectorEnv`
+    (``ManiSkillEnv(env_id, num_envs=N)`` does it on the CPU sim): one worker
+    process per env, the same batch ``[N]``, keys, specs and dtypes as the GPU sim.
+
+    Partial steps: ManiSkill steps all of its envs together (the GPU sim, and
+    the CPU workers of a ``CPUVectorEnv``, which gymnasium steps all at once),
+    so a ``"_step"`` mask is not honoured by this env (use a
+    :class:`~torchrl.envs.ParallelEnv` of single CPU envs for that).
 
     Args:
         env: a ManiSkill env, ``gym.make("PickCube-v1", ...)``, possibly
@@ -147,6 +155,7 @@ class ManiSkillWrapper(_EnvWrapper):
                 "from_pixels=True needs an env made with render_mode='rgb_array' "
                 f"(got render_mode={base.render_mode!r})."
             )
+        self._seeds_partial_resets = isinstance(base, CPUVectorEnv)
         self._from_pixels = bool(from_pixels)
         self._pixels_only = bool(pixels_only)
         self._requested_info_keys = info_keys
@@ -228,13 +237,7 @@ class ManiSkillWrapper(_EnvWrapper):
         self.done_spec = done_spec(batch, device)
 
     def _pixels_spec(self, base) -> Bounded:
-        configs = getattr(base, "_human_render_camera_configs", {}) or {}
-        if len(configs) == 1:
-            (cfg,) = configs.values()
-            shape = (cfg.height, cfg.width, 3)
-        else:
-            # Several cameras are tiled by ManiSkill: only a render tells the layout. Rendering does not step.
-            shape = tuple(self._render_batched(base.render()).shape[1:])
+        shape = base.render_frame_shape() if isinstance(base, CPUVectorEnv) else render_frame_shape(base)
         return Bounded(
             low=0,
             high=255,
@@ -328,6 +331,10 @@ class ManiSkillWrapper(_EnvWrapper):
             if seed is not None:
                 self._set_seed(seed)
             seed = self._draw_seed()
+        elif self._seeds_partial_resets:
+            # CPU sub-envs restart from drawn seeds too: reproducible from set_seed, whatever
+            # each worker process's global torch RNG holds (unseeded ManiSkill resets draw from it).
+            seed = self._draw_seed() if seed is None else seed
         obs, info = self._env.reset(seed=seed, options=options)
         source = self._to_tensordict(obs, info)
         return TensorDict._new_unsafe(source, batch_size=self.batch_size, device=self.device)
@@ -376,8 +383,12 @@ class ManiSkillEnv(ManiSkillWrapper):
         env_id (str): a registered ManiSkill task, e.g. ``"PickCube-v1"``.
 
     Keyword Args:
-        num_envs (int): parallel envs in one simulator. The CPU sim holds one;
-            for several CPU envs use ``ParallelEnv(n, lambda: ManiSkillEnv(...))``.
+        num_envs (int): parallel envs, the batch size. On the GPU sim, one
+            simulator; on the CPU sim (``sim_backend="cpu"``, or ``"auto"``
+            without CUDA), which holds one env per process, ``num_envs > 1``
+            runs one worker process per env
+            (:class:`~maniskill_torchrl.cpu_vector.CPUVectorEnv`, gymnasium's
+            ``AsyncVectorEnv`` underneath) with the same keys, specs and dtypes.
         from_pixels (bool): add ``"pixels"`` (sets ``render_mode="rgb_array"``).
         pixels_only, info_keys, device, allow_done_after_reset: as in
             :class:`ManiSkillWrapper`.

@@ -566,8 +566,15 @@ def test_wrong_action_shape(envs):
 def test_num_envs_on_cpu_sim(kwargs):
     if not kwargs and torch.cuda.is_available():
         pytest.skip("sim_backend='auto' picks the GPU sim when CUDA is available")
-    with pytest.raises(ValueError, match="ParallelEnv"):
-        ManiSkillEnv("PickCube-v1", num_envs=2, **kwargs)
+    # On the CPU sim, num_envs > 1 builds a CPUVectorEnv of N workers (tests/test_cpu_vector.py).
+    class Built(Exception):
+        pass
+
+    with mock.patch("maniskill_torchrl.env.CPUVectorEnv", side_effect=Built) as built:
+        with pytest.raises(Built):
+            ManiSkillEnv("PickCube-v1", num_envs=2, **kwargs)
+    (env_id, n), kw = built.call_args
+    assert (env_id, n, kw["sim_backend"]) == ("PickCube-v1", 2, "physx_cpu")
     with pytest.raises(ValueError, match="positive"):
         ManiSkillEnv("PickCube-v1", num_envs=0, **kwargs)
 

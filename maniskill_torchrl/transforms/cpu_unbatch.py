@@ -83,9 +83,9 @@ class CPUUnbatch(BatchSizeTransform):
         if batch_size != torch.Size([1]):
             raise ValueError(
                 f"CPUUnbatch needs a parent env with batch_size [1] (one ManiSkill env, num_envs=1), "
-                f"got batch_size {list(batch_size)}. For several CPU envs stack single ones: "
-                "ParallelEnv(N, lambda: TransformedEnv(ManiSkillEnv(env_id), CPUUnbatch())); on the "
-                "GPU sim use the batched env directly."
+                f"got batch_size {list(batch_size)}. A batched env needs no CPUUnbatch: "
+                "ManiSkillEnv(env_id, num_envs=N) has batch_size [N] on the CPU and GPU sims alike "
+                "(or stack single ones: ParallelEnv(N, lambda: TransformedEnv(ManiSkillEnv(env_id), CPUUnbatch())))."
             )
 
     def transform_env_batch_size(self, batch_size: torch.Size) -> torch.Size:

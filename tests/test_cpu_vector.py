@@ -1,0 +1,296 @@
+"""ManiSkillEnv(env_id, num_envs=N) on the CPU sim: one TorchRL env of batch [N] over N workers.
+
+The oracle is N independent raw ManiSkill envs (``gym.make(..., num_envs=1)``) in this
+process, every reset seeded as the contract says: after ``set_seed(s)`` sub-env ``i``
+starts with ``reset(seed=s + i)``; every later reset event draws ``d`` from
+``numpy.random.RandomState(s)`` and the sub-envs it resets restart with ``d + i``.
+"""
+from __future__ import annotations
+
+import os
+import signal
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from mani_skill.utils.wrappers.action_repeat import ActionRepeatWrapper
+from torchrl.collectors import Collector
+from torchrl.data import Bounded
+from torchrl.envs import Compose, TransformedEnv
+from torchrl.envs.utils import check_env_specs, step_mdp
+
+from conftest import make_gym_env, random_actions
+from maniskill_torchrl import (
+    ActionRepeat,
+    CPUUnbatch,
+    CPUVectorEnv,
+    EpisodeMetrics,
+    ManiSkillEnv,
+    ManiSkillWrapper,
+)
+
+pytestmark = pytest.mark.usefixtures("torch_single_thread")
+
+N = 2
+CART = dict(obs_mode="state", max_episode_steps=30)  # random actions fail it after ~20 steps
+PICK = dict(obs_mode="state_dict", max_episode_steps=5)
+
+
+@pytest.fixture(scope="module")
+def cartpole():
+    env = ManiSkillEnv("MS-CartpoleBalance-v1", num_envs=N, **CART)
+    yield env
+    env.close()
+
+
+@pytest.fixture(scope="module")
+def pick():
+    env = ManiSkillEnv("PickCube-v1", num_envs=N, **PICK)
+    yield env
+    env.close()
+
+
+def _leaves(x, prefix=()):
+    if isinstance(x, dict):
+        for k, v in x.items():
+            yield from _leaves(v, prefix + (k,))
+    else:
+        yield prefix, x
+
+
+def _assert_sub_env(td, i, obs, info, what):
+    """Row ``i`` of ``td`` holds the raw env's ``obs`` and tensor infos, bit for bit."""
+    obs = obs if isinstance(obs, dict) else {"observation": obs}
+    n = 0
+    for key, want in list(_leaves(obs)) + [((k,), v) for k, v in info.items() if isinstance(v, torch.Tensor)]:
+        got = td.get(key if len(key) > 1 else key[0])[i]
+        assert got.dtype == want.dtype, (what, key, got.dtype, want.dtype)
+        assert torch.equal(got, want[0]), (what, key, got, want[0])
+        n += 1
+    assert n >= 3
+
+
+def _clone(x):
+    if isinstance(x, dict):
+        return {k: _clone(v) for k, v in x.items()}
+    return x.clone() if isinstance(x, torch.Tensor) else x
+
+
+def test_specs_are_the_single_env_specs_batched(pick):
+    """Same keys, spec classes, dtypes and bounds as batch [1] (the GPU sim's code path), batch [N]."""
+    single = ManiSkillEnv("PickCube-v1", **PICK)
+    try:
+        for name in ("full_observation_spec", "full_action_spec", "full_reward_spec", "full_done_spec"):
+            want, got = getattr(single, name), getattr(pick, name)
+            assert got.shape == torch.Size([N])
+            assert set(got.keys(True, True)) == set(want.keys(True, True)), name
+            for key in want.keys(True, True):
+                w, g = want[key], got[key]
+                assert type(g) is type(w) and g.dtype == w.dtype, (name, key)
+                assert g.shape == torch.Size([N]) + w.shape[1:], (name, key)
+                if isinstance(w, Bounded):
+                    assert torch.equal(g.space.low[0], w.space.low[0]), key
+    finally:
+        single.close()
+    assert pick.batch_size == torch.Size([N]) and not pick.gpu_sim_enabled
+    assert ("agent", "qpos") in pick.observation_spec.keys(True, True)
+
+
+def test_check_env_specs():
+    env = ManiSkillEnv("PickCube-v1", num_envs=3, obs_mode="state")
+    try:
+        check_env_specs(env, seed=0)
+    finally:
+        env.close()
+
+
+def test_each_sub_env_equals_a_raw_env(cartpole):
+    """Auto-resets across episodes that end at different steps (partial resets) and together."""
+    raws = [make_gym_env("MS-CartpoleBalance-v1", **CART) for _ in range(N)]
+    seed, steps = 7, 70
+    rng = np.random.RandomState(seed)
+    actions = random_actions(gym.spaces.Box(-1, 1, (N, 1)), steps, seed=3)
+    try:
+        cartpole.set_seed(seed)
+        td = cartpole.reset()
+        for i, raw in enumerate(raws):
+            obs, info = raw.reset(seed=seed + i)
+            _assert_sub_env(td, i, obs, info, "first reset")
+        partial = 0
+        for t, action in enumerate(actions):
+            td, td_next = cartpole.step_and_maybe_reset(td.set("action", action))
+            dones = []
+            for i, raw in enumerate(raws):
+                obs, reward, term, trunc, info = raw.step(action[i : i + 1])
+                _assert_sub_env(td["next"], i, obs, info, f"step {t}")
+                assert torch.equal(td["next", "reward"][i], reward), t
+                assert bool(td["next", "terminated"][i]) == bool(term) and bool(td["next", "truncated"][i]) == bool(trunc)
+                dones.append(bool(term | trunc))
+            if any(dones):
+                partial += not all(dones)
+                d = int(rng.randint(2**31))
+                for i, raw in enumerate(raws):
+                    if dones[i]:
+                        obs, info = raw.reset(seed=d + i)
+                        _assert_sub_env(td_next, i, obs, info, f"reset after step {t}")
+            td = td_next
+        assert partial >= 2, "sub-envs should end at different steps"
+    finally:
+        for raw in raws:
+            raw.close()
+
+
+def test_reset_mask_resets_only_masked(pick):
+    raws = [make_gym_env("PickCube-v1", **PICK) for _ in range(N)]
+    actions = random_actions(gym.spaces.Box(-1, 1, (N, 8)), 4, seed=1)
+    try:
+        td = pick.reset(seed=10)
+        for i, raw in enumerate(raws):
+            raw.reset(seed=10 + i)
+        for a in actions[:2]:
+            td = step_mdp(pick.step(td.set("action", a)))
+            for i, raw in enumerate(raws):
+                raw.step(a[i : i + 1])
+        before = td.clone()
+        td = pick.reset(td.set("_reset", torch.tensor([True, False])), seed=50)
+        obs, info = raws[0].reset(seed=50)
+        _assert_sub_env(td, 0, obs, info, "reset sub-env")
+        assert int(td["elapsed_steps"][0]) == 0 and int(td["elapsed_steps"][1]) == 2
+        assert (td[1] == before[1].exclude("_reset")).all(), "the unmasked sub-env must keep its data"
+        for t, a in enumerate(actions[2:]):
+            td = pick.step(td.set("action", a))
+            for i, raw in enumerate(raws):
+                obs, _, _, _, info = raw.step(a[i : i + 1])
+                _assert_sub_env(td["next"], i, obs, info, f"after partial reset, step {t}")
+            td = step_mdp(td)
+    finally:
+        for raw in raws:
+            raw.close()
+
+
+def test_action_repeat_equals_maniskill_wrapper(cartpole):
+    """ActionRepeat over the batched CPU env: each sub-env is ManiSkill's ActionRepeatWrapper.
+
+    gymnasium's AsyncVectorEnv steps every worker: a sub-env that ends mid-repeat is stepped
+    with the others and its results discarded; it is compared up to its own end."""
+    repeat = 4
+    env = TransformedEnv(cartpole, ActionRepeat(repeat))
+    oracles = [ActionRepeatWrapper(make_gym_env("MS-CartpoleBalance-v1", **CART), repeat) for _ in range(N)]
+    actions = random_actions(gym.spaces.Box(-1, 1, (N, 1)), 20, seed=5)
+    try:
+        td = env.reset(seed=21)
+        for i, o in enumerate(oracles):
+            obs, info = o.reset(seed=21 + i)
+            _assert_sub_env(td, i, obs, info, "reset")
+        running = [True] * N
+        mid_repeat = False
+        for t, a in enumerate(actions):
+            td = env.step(td.set("action", a))
+            for i, o in enumerate(oracles):
+                if not running[i]:
+                    continue
+                obs, reward, term, trunc, info = _clone(o.step(a[i : i + 1]))
+                _assert_sub_env(td["next"], i, obs, info, f"outer step {t}")
+                assert torch.equal(td["next", "reward"][i], reward), t
+                if bool(term | trunc):
+                    running[i] = False
+                    mid_repeat |= int(info["elapsed_steps"]) % repeat != 0
+            if not any(running):
+                break
+            td = step_mdp(td)
+        assert not any(running), "both episodes should end within 80 inner steps"
+        assert mid_repeat, "an episode should end mid-repeat"
+    finally:
+        for o in oracles:
+            o.close()
+
+
+def test_collector_with_transforms():
+    env = TransformedEnv(
+        ManiSkillEnv("PickCube-v1", num_envs=N, obs_mode="state", max_episode_steps=4),
+        Compose(ActionRepeat(2), EpisodeMetrics()),
+    )
+    env.set_seed(0)
+    collector = Collector(env, None, frames_per_batch=8 * N, total_frames=16 * N)
+    try:
+        batches = list(collector)
+    finally:
+        collector.shutdown()
+    assert len(batches) == 2 and batches[0].shape == (N, 8)
+    batch = torch.cat(batches, 1)
+    done = batch["next", "done"].squeeze(-1)
+    assert int(done.sum()) == 16 * N // 2  # an episode every 2 agent steps, in each sub-env
+    assert (batch["next", "episode", "episode_len"][done] == 2).all()
+    assert (batch["next", "elapsed_steps"][done] == 4).all()
+
+
+def test_rgb_observations_and_render():
+    env = ManiSkillEnv(
+        "PickCube-v1", num_envs=N, obs_mode="rgb", from_pixels=True,
+        sensor_configs=dict(width=32, height=32), human_render_camera_configs=dict(width=48, height=40),
+    )
+    raw = make_gym_env("PickCube-v1", obs_mode="rgb", render_mode="rgb_array",
+                       sensor_configs=dict(width=32, height=32), human_render_camera_configs=dict(width=48, height=40))
+    try:
+        rgb_key = ("sensor_data", "base_camera", "rgb")
+        assert env.observation_spec[rgb_key].shape == (N, 32, 32, 3)
+        assert env.observation_spec["pixels"].shape == (N, 40, 48, 3)
+        td = env.reset(seed=4)
+        assert td["pixels"].dtype == torch.uint8 and td.get(rgb_key).dtype == torch.uint8
+        obs, _ = raw.reset(seed=5)
+        assert torch.equal(td.get(rgb_key)[1], obs["sensor_data"]["base_camera"]["rgb"][0])
+        assert torch.equal(td["pixels"][1], raw.render()[0])
+        frames = env.render()
+        assert frames.shape == (N, 40, 48, 3) and frames.dtype == torch.uint8
+    finally:
+        env.close()
+        raw.close()
+
+
+def test_dict_actions():
+    env = ManiSkillEnv("TwoRobotPickCube-v1", num_envs=N, obs_mode="state", max_episode_steps=3)
+    try:
+        td = env.rollout(4, break_when_any_done=False)
+        assert td.shape == (N, 4)
+        assert set(env.full_action_spec["action"].keys()) == set(td["action"].keys())
+        assert td["next", "done"].squeeze(-1)[:, 2].all()
+    finally:
+        env.close()
+
+
+def test_wrapper_accepts_a_cpu_vector_env():
+    vec = CPUVectorEnv("PickCube-v1", N, obs_mode="state")
+    env = ManiSkillWrapper(vec)
+    try:
+        assert env.batch_size == torch.Size([N])
+        assert env.rand_step(env.reset(seed=0))["next", "observation"].shape == (N, 42)
+    finally:
+        env.close()
+    assert all(not p.is_alive() for p in vec._vec.processes)
+
+
+def test_dead_worker_raises_instead_of_hanging():
+    env = ManiSkillEnv("PickCube-v1", num_envs=N, obs_mode="state")
+    td = env.reset(seed=0)
+    worker = env._env._vec.processes[1]
+    os.kill(worker.pid, signal.SIGKILL)
+    worker.join(5)
+    with pytest.raises(RuntimeError, match=r"worker\(s\) \[1\] of PickCube-v1 died during step"):
+        env.rand_step(td)
+    assert all(not p.is_alive() for p in env._env._vec.processes)
+    env.close()  # closing again is harmless
+
+
+def test_bad_input():
+    with pytest.raises(ValueError, match="forkserver"):
+        CPUVectorEnv("PickCube-v1", 2, context="fork")
+    env = ManiSkillEnv("PickCube-v1", num_envs=N, obs_mode="state")
+    try:
+        td = env.reset(seed=0)
+        with pytest.raises(ValueError, match=r"shape \(2, 7\)"):
+            env.step(td.set("action", torch.zeros(N, 7)))
+        with pytest.raises(ValueError, match="batch_size \\[1\\]"):
+            TransformedEnv(env, CPUUnbatch())
+    finally:
+        env.close()
