@@ -6,12 +6,13 @@ Two configurations:
   GPU-sim env with ``--num-envs`` parallel envs (512) is one batched TorchRL
   env (``ManiSkillEnv(env_id, num_envs=512, sim_backend="gpu")``, batch
   ``[512]``); partial resets go through TorchRL's ``"_reset"`` mask.
-- **CPU**: ``--num-envs`` single CPU-sim envs, each ``ManiSkillEnv ->
-  CPUUnbatch``, stacked by a ``ParallelEnv`` (or ``SerialEnv``).
-  ``--vec batched --num-envs 1`` runs the GPU configuration's code path on
-  one CPU env (batch ``[1]``, no CPUUnbatch).
-  ``--smoke`` is a few hundred frames through a ``SerialEnv`` of 2 envs that
-  checks the whole loop end to end in well under a minute.
+- **CPU**: the same call, ``ManiSkillEnv(env_id, num_envs=4)``, on the CPU
+  sim: one batched TorchRL env over 4 worker processes (one CPU-sim env
+  each), the fastest CPU path (``benchmarks/RESULTS.md``). ``--vec parallel``
+  / ``--vec serial`` stack single ``ManiSkillEnv -> CPUUnbatch`` envs in a
+  ``ParallelEnv`` / ``SerialEnv`` instead.
+  ``--smoke`` is a few hundred frames through 2 batched CPU envs that checks
+  the whole loop end to end in well under a minute.
 
 Either way the env then gets ``ActionRepeat`` (``--repeat``, optional) and
 ``EpisodeMetrics`` (return, length, success once / at end per episode), and
@@ -84,7 +85,7 @@ def make_env(args: argparse.Namespace, device: torch.device) -> EnvBase:
     if args.max_episode_steps is not None:
         env_kwargs["max_episode_steps"] = args.max_episode_steps
     if args.vec == "batched":
-        # One simulator holds every env (the GPU sim): already a batched TorchRL env, no CPUUnbatch.
+        # A batched TorchRL env on either sim (one GPU simulator, or one CPU worker per env): no CPUUnbatch.
         transforms = []
         if args.repeat > 1:
             transforms.append(ActionRepeat(args.repeat))
@@ -280,13 +281,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--env-id", default="PushCube-v1")
     p.add_argument("--smoke", action="store_true",
-                   help="tiny CPU run: SerialEnv of 2 envs, a few hundred frames")
+                   help="tiny CPU run: 2 batched CPU envs, a few hundred frames")
     p.add_argument("--device", default=None, help="cuda (GPU sim) or cpu (CPU sim); default: cuda if available")
     p.add_argument("--num-envs", type=int, default=None, help="default: 512 on GPU, 4 on CPU, 2 with --smoke")
-    p.add_argument("--vec", choices=("batched", "parallel", "serial"), default=None,
-                   help="batched: one ManiSkill env with --num-envs envs (GPU sim; on the CPU sim only "
-                        "--num-envs 1); parallel / serial: a ParallelEnv / SerialEnv of CPUUnbatch-ed "
-                        "CPU envs. Default: batched on GPU, parallel on CPU, serial with --smoke")
+    p.add_argument("--vec", choices=("batched", "parallel", "serial"), default="batched",
+                   help="batched: ManiSkillEnv(num_envs=--num-envs) (one GPU simulator, or one CPU worker "
+                        "process per env); parallel / serial: a ParallelEnv / SerialEnv of CPUUnbatch-ed "
+                        "CPU envs")
     p.add_argument("--num-steps", type=int, default=None, help="rollout steps per env per iteration")
     p.add_argument("--total-frames", type=int, default=None)
     p.add_argument("--repeat", type=int, default=1, help="ActionRepeat")
@@ -314,7 +315,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     if args.smoke and args.device != "cpu":
         p.error("--smoke is the CPU configuration; drop --device or use --device cpu")
     gpu = args.device.startswith("cuda")
-    if gpu and args.vec not in (None, "batched"):
+    if gpu and args.vec != "batched":
         p.error(f"--vec {args.vec} is for the CPU sim: the GPU sim is one batched env (--vec batched)")
     # Defaults per configuration: (num_envs, num_steps, total_frames, epochs, minibatch).
     if args.smoke:
@@ -326,11 +327,6 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     for name, value in zip(("num_envs", "num_steps", "total_frames", "epochs", "minibatch_size"), defaults):
         if getattr(args, name) is None:
             setattr(args, name, value)
-    if args.vec is None:
-        args.vec = "batched" if gpu else "serial" if args.smoke else "parallel"
-    if args.vec == "batched" and not gpu and args.num_envs != 1:
-        p.error(f"--vec batched on the CPU sim holds one env (got --num-envs {args.num_envs}); "
-                "use --vec parallel or --vec serial for more")
     for name in ("num_envs", "num_steps", "total_frames", "epochs", "minibatch_size", "repeat", "hidden", "threads"):
         if getattr(args, name) < 1:
             p.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")

@@ -1,26 +1,19 @@
 """The ``maniskill-torchrl`` command line.
 
 ``maniskill-torchrl demo`` shows the library end to end on the CPU (about a
-minute on 2 idle cores): a :class:`~torchrl.envs.ParallelEnv` of single ManiSkill envs, each
-worker running ``ManiSkillEnv -> CPUUnbatch -> ActionRepeat -> EpisodeMetrics``,
-fed to a :class:`torchrl.collectors.Collector`; it prints a summary table and
-writes a per-episode return plot, a short rollout video and a JSON summary.
+minute on 2 idle cores): ``ManiSkillEnv(env_id, num_envs=N)`` on the CPU sim (one
+batch-``[N]`` TorchRL env, one worker process per env) under
+``ActionRepeat -> EpisodeMetrics``, fed to a :class:`torchrl.collectors.Collector`;
+it prints a summary table and writes a per-episode return plot, a short rollout
+video and a JSON summary.
 
-Transform order, per worker:
-
-1. ``CPUUnbatch`` first: ManiSkill's CPU sim holds one env with batch ``[1]``;
-   the unbatched env is what ``ParallelEnv`` stacks into batch ``[N]``.
-2. ``ActionRepeat`` inside the worker, not around the ``ParallelEnv``: the
-   inner steps then cost no inter-process round trip, and a worker whose
-   episode ends mid-repeat just stops (nothing to mask across workers).
-3. ``EpisodeMetrics`` after ``ActionRepeat``: it sees one step per agent
-   decision, so ``episode_len`` counts agent steps, and the repeated rewards
-   arrive already summed.
+``EpisodeMetrics`` comes after ``ActionRepeat``: it sees one step per agent
+decision, so ``episode_len`` counts agent steps, and the repeated rewards arrive
+already summed.
 """
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import math
 import os
@@ -82,10 +75,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     demo = sub.add_parser(
         "demo",
-        help="collect frames from a ParallelEnv of CPU ManiSkill envs; write a plot and a video",
+        help="collect frames from a batched CPU ManiSkill env; write a plot and a video",
         description=(
-            "Collects frames with a TorchRL Collector from a ParallelEnv of CPU ManiSkill envs "
-            "(ManiSkillEnv -> CPUUnbatch -> ActionRepeat -> EpisodeMetrics per worker), prints a "
+            "Collects frames with a TorchRL Collector from ManiSkillEnv(env_id, num_envs=--workers) "
+            "on the CPU sim (one worker process per env) under ActionRepeat -> EpisodeMetrics, prints a "
             "summary and writes returns.png, rollout.mp4 and summary.json to --out."
         ),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
@@ -96,7 +89,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--frames", type=_positive_int, default=3000,
                       help="agent steps to collect over all workers (rounded up to whole batches)")
     demo.add_argument("--workers", type=_positive_int, default=2,
-                      help="ParallelEnv worker processes, one CPU env each")
+                      help="CPU envs (num_envs), one worker process each")
     demo.add_argument("--out", type=Path, default=Path("outputs/demo"), help="output folder")
     demo.add_argument("--seed", type=_seed, default=0, help="seed of envs and policy")
     demo.add_argument("--policy", choices=("auto", "scripted", "random"), default="auto",
@@ -176,20 +169,15 @@ def env_kwargs_for(env_id: str, policy: str) -> dict[str, Any]:
     return {"obs_mode": "state"}
 
 
-def make_worker_env(env_id: str, repeat: int, env_kwargs: dict[str, Any]):
-    """One worker's env: ``ManiSkillEnv -> CPUUnbatch -> ActionRepeat -> EpisodeMetrics`` (batch ``[]``).
-
-    A module-level function so that ``functools.partial`` of it pickles into
-    spawned ``ParallelEnv`` workers.
-    """
-    _quiet_maniskill()
+def make_demo_env(env_id: str, num_envs: int, repeat: int, env_kwargs: dict[str, Any]):
+    """The demo's env: ``ManiSkillEnv(num_envs=N)`` on the CPU sim -> ``ActionRepeat`` -> ``EpisodeMetrics``."""
     from torchrl.envs import Compose, TransformedEnv
 
-    from maniskill_torchrl import ActionRepeat, CPUUnbatch, EpisodeMetrics, ManiSkillEnv
+    from maniskill_torchrl import ActionRepeat, EpisodeMetrics, ManiSkillEnv
 
     return TransformedEnv(
-        ManiSkillEnv(env_id, sim_backend="physx_cpu", **env_kwargs),
-        Compose(CPUUnbatch(), ActionRepeat(repeat), EpisodeMetrics()),
+        ManiSkillEnv(env_id, num_envs=num_envs, sim_backend="physx_cpu", **env_kwargs),
+        Compose(ActionRepeat(repeat), EpisodeMetrics()),
     )
 
 
@@ -323,7 +311,6 @@ def run_demo(args: argparse.Namespace) -> int:
 def _collect(args: argparse.Namespace, policy_name: str, env_kwargs: dict[str, Any]):
     """Runs the collector; returns the finished episodes, the (started) shutdown thread and throughput numbers."""
     from torchrl.collectors import Collector, RandomPolicy
-    from torchrl.envs import ParallelEnv
     from tqdm import tqdm
 
     # Steps per worker per batch: short batches keep the progress bar moving.
@@ -331,14 +318,8 @@ def _collect(args: argparse.Namespace, policy_name: str, env_kwargs: dict[str, A
     frames_per_batch = per_worker * args.workers
     total_frames = math.ceil(args.frames / frames_per_batch) * frames_per_batch
 
-    make_env = functools.partial(make_worker_env, args.env_id, args.repeat, env_kwargs)
     t0 = time.perf_counter()
-    # metadata_from_workers: the specs come from a worker, so the main process never builds
-    # a simulator (no SAPIEN start-up here, ~1 s saved).
-    # shutdown_timeout: a worker that has closed its env but is still exiting (SAPIEN teardown
-    # takes seconds on a busy CPU) is terminated after this grace period.
-    env = ParallelEnv(args.workers, make_env, mp_start_method="spawn", metadata_from_workers=True,
-                      shutdown_timeout=3.0)
+    env = make_demo_env(args.env_id, args.workers, args.repeat, env_kwargs)
     env.set_seed(args.seed)
     if policy_name == "scripted":
         policy = make_scripted_policy(noise=SCRIPTED_NOISE, seed=args.seed)
@@ -349,7 +330,7 @@ def _collect(args: argparse.Namespace, policy_name: str, env_kwargs: dict[str, A
         policy,
         frames_per_batch=frames_per_batch,
         # Endless, stopped by the loop below: with a frame budget the Collector closes the
-        # ParallelEnv (seconds of worker teardown) before it hands over the last batch.
+        # env (seconds of worker teardown) before it hands over the last batch.
         total_frames=-1,
         # Neither policy keeps a recurrent state: no InitTracker needed.
         auto_register_policy_transforms=False,
@@ -448,8 +429,8 @@ def print_summary(summary: dict[str, Any]) -> None:
 
     rows = [
         ("env", f"{summary['env_id']} (CPU sim), {summary['policy']} policy"),
-        ("pipeline", f"ParallelEnv({summary['workers']}) x [CPUUnbatch, ActionRepeat({summary['repeat']}), "
-                     "EpisodeMetrics]"),
+        ("pipeline", f"ManiSkillEnv(num_envs={summary['workers']}) -> ActionRepeat({summary['repeat']}) "
+                     "-> EpisodeMetrics"),
         ("frames (agent steps)", f"{summary['frames']}"),
         ("sim steps", f"{summary['sim_steps']}"),
         ("start-up + 1st batch", fmt(summary["startup_s"], ".1f", " s")),

@@ -47,7 +47,7 @@ def test_demo_console_script_end_to_end(tmp_path: Path) -> None:
     )
     stdout = proc.stdout
     for line in ("maniskill-torchrl demo summary", "frames/s", "episodes finished", "mean return",
-                 "success rate", "ParallelEnv(2) x [CPUUnbatch, ActionRepeat(2), EpisodeMetrics]"):
+                 "success rate", "ManiSkillEnv(num_envs=2) -> ActionRepeat(2) -> EpisodeMetrics"):
         assert line in stdout, f"{line!r} missing from:\n{stdout}"
 
     png = (out / "returns.png").read_bytes()
