@@ -25,7 +25,8 @@
 # tests.xml, bench.log, bench.json, summary.json.
 #
 # Knobs: GPU_CHECK_SITE (default /tmp/maniskill_torchrl-gpu-site), GPU_CHECK_TEST_S,
-#        GPU_CHECK_BENCH_S, GPU_CHECK_PYTEST_ARGS (extra pytest arguments),
+#        GPU_CHECK_BENCH_S, GPU_CHECK_PER_TEST_S (150, with pytest-timeout),
+#        GPU_CHECK_PYTEST_ARGS (extra pytest arguments),
 #        GPU_CHECK_BENCH_ARGS (extra bench_gpu.py arguments), PYTHON (default python3).
 set -uo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
@@ -36,7 +37,7 @@ OUT_DIR=""
 for arg in "$@"; do
     case "$arg" in
         --install-only) INSTALL_ONLY=1 ;;
-        -h|--help) sed -n '2,31p' "$0"; exit 0 ;;
+        -h|--help) awk 'NR > 1 && /^#/ { sub(/^# ?/, ""); print; next } NR > 1 { exit }' "$0"; exit 0 ;;
         *) OUT_DIR="$arg" ;;
     esac
 done
@@ -189,8 +190,11 @@ ext_rc=$?
 # ---------------------------------------------------------------------- 4. tests
 log "pytest tests/gpu (limit ${GPU_CHECK_TEST_S:-240}s)"
 t=$(date +%s)
+per_test=()
+# pytest-timeout (there on the machine) stops one hung test and keeps the junit report.
+"$PY" -c "import pytest_timeout" 2>/dev/null && per_test=(--timeout "${GPU_CHECK_PER_TEST_S:-150}")
 # shellcheck disable=SC2086
-timeout -k 10 "${GPU_CHECK_TEST_S:-240}" "$PY" -m pytest tests/gpu -q -rA -p no:cacheprovider \
+timeout -k 10 "${GPU_CHECK_TEST_S:-240}" "$PY" -m pytest tests/gpu -q -rA -p no:cacheprovider "${per_test[@]}" \
     -o junit_family=xunit1 --junitxml="$OUT_DIR/tests.xml" ${GPU_CHECK_PYTEST_ARGS:-} 2>&1 | tee "$OUT_DIR/tests.log"
 test_rc=${PIPESTATUS[0]}
 test_s=$(($(date +%s) - t))

@@ -42,7 +42,7 @@ VERIFY=0
 for arg in "$@"; do
     case "$arg" in
         --verify) VERIFY=1 ;;
-        -h|--help) sed -n '2,36p' "$0"; exit 0 ;;
+        -h|--help) awk 'NR > 1 && /^#/ { sub(/^# ?/, ""); print; next } NR > 1 { exit }' "$0"; exit 0 ;;
         *) echo "gpu_kit: unknown argument $arg" >&2; exit 2 ;;
     esac
 done

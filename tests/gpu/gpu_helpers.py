@@ -17,8 +17,10 @@ Instead:
 Where two independent instances are compared (``test_gpu_env.py``), the test first checks that
 two raw ManiSkill instances agree with each other, and skips (saying so) if they do not.
 
-Set ``MANISKILL_TORCHRL_GPU_TESTS_ON_CPU=1`` to run these tests on the CPU sim with one env (a
-check of the test code itself; nothing about the GPU path).
+Set ``MANISKILL_TORCHRL_GPU_TESTS_ON_CPU=N`` to run these tests on the CPU sim with N envs (a
+check of the test code itself, nothing about the GPU path; with N > 1 the tests that need one
+ManiSkill gym env under ManiSkill's wrappers skip, and partial resets are seeded, as the
+library's batched CPU env does).
 """
 from __future__ import annotations
 
@@ -37,7 +39,10 @@ import torch
 import mani_skill.envs  # noqa: F401  (registers the tasks)
 
 CUDA = torch.cuda.is_available()
-ON_CPU = os.environ.get("MANISKILL_TORCHRL_GPU_TESTS_ON_CPU") == "1" and not CUDA
+# A check of the test code itself on the CPU sim (nothing about the GPU path): N > 1 envs run as
+# the library's batched CPU env (one worker process per env), where the tests allow it.
+CPU_ENVS = 0 if CUDA else int(os.environ.get("MANISKILL_TORCHRL_GPU_TESTS_ON_CPU", "0") or 0)
+ON_CPU = CPU_ENVS > 0
 RUN = CUDA or ON_CPU
 SKIP_REASON = (
     "needs CUDA (ManiSkill's GPU sim): run `bash scripts/gpu_check.sh` on an accelerator machine "
@@ -46,7 +51,9 @@ SKIP_REASON = (
 # Module marker for every test module here: skipped, not failed, without CUDA.
 requires_gpu = pytest.mark.skipif(not RUN, reason=SKIP_REASON)
 
-NUM_ENVS = 512 if CUDA else 1
+NUM_ENVS = 512 if CUDA else max(CPU_ENVS, 1)
+# Partial resets: unseeded on the GPU sim (as ManiSkill does); the batched CPU env seeds them.
+PARTIAL_RESETS_SEEDED = not CUDA and NUM_ENVS > 1
 SIM_BACKEND = "gpu" if CUDA else "physx_cpu"
 SEED = 123
 # Task -> episode limit: above 8 steps (numpy's pairwise sum switches to blocks of 8 there) and
@@ -59,8 +66,16 @@ def maniskill_kwargs(task: str) -> dict:
     return dict(obs_mode="state", sim_backend=SIM_BACKEND, max_episode_steps=TASKS[task])
 
 
+def needs_one_gym_env() -> None:
+    """Skips where the test needs one ManiSkill gym env of NUM_ENVS envs, which the CPU sim only
+    makes for one env (the CPU check of the test code with N > 1)."""
+    if not CUDA and NUM_ENVS > 1:
+        pytest.skip("needs one ManiSkill gym env of several envs: the GPU sim")
+
+
 def make_raw(task: str) -> gym.Env:
     """A ManiSkill env as users make it: ``gym.make(task, num_envs=NUM_ENVS, ...)``."""
+    needs_one_gym_env()
     return gym.make(task, num_envs=NUM_ENVS, **maniskill_kwargs(task))
 
 
@@ -146,7 +161,11 @@ class Recorder(gym.Wrapper):
     terminated, truncated, info))``. The caller gets ManiSkill's own objects, unchanged."""
 
     def __init__(self, env: gym.Env):
-        super().__init__(env)
+        if isinstance(env, gym.Env):
+            super().__init__(env)
+        else:  # the library's batched CPU env (CPU check of the test code): same API, no gym.Env
+            self.env = env
+            self._action_space = self._observation_space = self._metadata = self._cached_spec = None
         self.calls: list[tuple] = []
 
     def reset(self, *, seed=None, options=None):

@@ -10,8 +10,9 @@ MS-CartpoleBalance-v1 (random actions make envs fail at different steps: partial
   ``set_seed`` for full resets, ``options={"env_idx": done envs}`` unseeded for partial ones);
 - independent instances: a fresh ``gym.make`` env driven by a plain loop and a fresh
   ManiSkillEnv, same seeds, same actions, same global torch seed (ManiSkill's unseeded partial
-  resets draw from it): equal with ``torch.equal``, provided two raw instances agree with each
-  other (else the test says so and skips: ManiSkill does not promise reproducible GPU runs);
+  resets draw from it): equal with ``torch.equal``. Should they differ, a second raw instance
+  tells whether ManiSkill reproduces its own run; if it does not, the test says so and skips
+  (ManiSkill does not promise reproducible GPU runs), else it fails;
 - partial reset: after 4 steps, ``env.reset(td.set("_reset", mask))`` calls ManiSkill with
   exactly the masked ``env_idx``, leaves every entry of the other envs bit for bit, gives the
   masked envs ManiSkill's reset data, and the next step counts on from 4 for the others.
@@ -27,6 +28,7 @@ from torchrl.envs.utils import step_mdp
 from gpu_helpers import (
     CUDA,
     NUM_ENVS,
+    PARTIAL_RESETS_SEEDED,
     SEED,
     TASKS,
     Recorder,
@@ -120,7 +122,10 @@ def test_lockstep_equal_to_maniskill_calls(task):
             prev_obs, prev_info = reset_obs, tensor_infos(reset_info)
             n_full += 1
         else:
-            assert arg["seed"] is None, f"step {t}: a partial reset is unseeded on the GPU sim, got {arg['seed']}"
+            if PARTIAL_RESETS_SEEDED:  # the batched CPU env (CPU check of this test)
+                assert arg["seed"] == next(seeds), f"step {t}: partial reset seed {arg['seed']}"
+            else:
+                assert arg["seed"] is None, f"step {t}: a partial reset is unseeded on the GPU sim, got {arg['seed']}"
             assert_same(env_idx_of(arg["options"]), done.nonzero().squeeze(-1), f"step {t}: env_idx")
             prev_obs = _merge(done, reset_obs, obs)
             prev_info = {k: _merge(done, v, prev_info[k]) for k, v in tensor_infos(reset_info).items()}
@@ -165,31 +170,40 @@ def _first_difference(a: list[dict], b: list[dict]) -> str | None:
     return None
 
 
+def _raw_run(task: str, n: int, seeds: list[int]):
+    genv = make_raw(task)
+    try:
+        acts = actions(genv.unwrapped.single_action_space, genv.unwrapped.device, n, seed=2)
+        torch.manual_seed(TORCH_SEED)
+        return acts, _raw_loop(genv, acts, seeds)
+    finally:
+        genv.close()
+
+
 @pytest.mark.parametrize("task", list(TASKS))
 def test_equal_to_independent_raw_loop(task):
     n = N_STEPS[task]
     seeds = seeds_after_set_seed(SEED, n + 2)
-    runs = []
-    for _ in range(2):  # two raw instances: does ManiSkill reproduce itself here?
-        genv = make_raw(task)
-        try:
-            acts = actions(genv.unwrapped.single_action_space, genv.unwrapped.device, n, seed=2)
-            torch.manual_seed(TORCH_SEED)
-            runs.append(_raw_loop(genv, acts, seeds))
-        finally:
-            genv.close()
-    diff = _first_difference(*runs)
-    if diff is not None:
-        pytest.skip(f"ManiSkill's {'GPU' if CUDA else 'CPU'} sim did not reproduce its own run across two "
-                    f"instances ({diff}); test_lockstep_equal_to_maniskill_calls checks the wrapper instead")
+    acts, raw_a = _raw_run(task, n, seeds)
     env = make_env(task)
     try:
         torch.manual_seed(TORCH_SEED)
         steps = _run_torchrl(env, acts, SEED)
-        for t, (td, rec) in enumerate(zip(steps, runs[0])):
-            _check_step(env, td, rec["prev"], rec["prev_info"], rec["out"], t)
+        try:
+            for t, (td, rec) in enumerate(zip(steps, raw_a)):
+                _check_step(env, td, rec["prev"], rec["prev_info"], rec["out"], t)
+            return
+        except AssertionError as e:
+            failure = e
     finally:
         env.close()
+    # Ours differs from the raw run: is it ours, or does ManiSkill not reproduce its own run?
+    _, raw_b = _raw_run(task, n, seeds)
+    diff = _first_difference(raw_a, raw_b)
+    if diff is not None:
+        pytest.skip(f"ManiSkill's {'GPU' if CUDA else 'CPU'} sim did not reproduce its own run across two "
+                    f"instances ({diff}); test_lockstep_equal_to_maniskill_calls checks the wrapper instead")
+    raise failure
 
 
 @pytest.mark.parametrize("task", list(TASKS))
@@ -219,7 +233,7 @@ def test_partial_reset_touches_only_masked_envs(task):
 
     assert len(recorder.calls) == n_calls + 2  # one reset, one step
     kind, arg, (reset_obs, reset_info) = recorder.calls[n_calls]
-    assert kind == "reset" and arg["seed"] is None
+    assert kind == "reset" and (arg["seed"] is None or PARTIAL_RESETS_SEEDED)
     assert_same(env_idx_of(arg["options"]), mask.nonzero().squeeze(-1), "env_idx passed to ManiSkill")
 
     assert "_reset" not in after.keys()

@@ -48,6 +48,7 @@ from gpu_helpers import (
     assert_same,
     clone_tree,
     info_key,
+    needs_one_gym_env,
     requires_gpu,
     seeds_after_set_seed,
     shared_env,
@@ -85,6 +86,7 @@ def _reference(inner: list[tuple]) -> dict:
     "task, repeat", [("PushCube-v1", 3), ("MS-CartpoleBalance-v1", 2), ("MS-CartpoleBalance-v1", 3)]
 )
 def test_action_repeat_equals_maniskill_wrapper(task, repeat):
+    needs_one_gym_env()
     env = shared_env(task)
     raw = env._env
     n_outer = 2 * TASKS[task] // repeat + 2  # two episodes at least
@@ -170,6 +172,7 @@ def test_action_repeat_equals_maniskill_wrapper(task, repeat):
 
 @pytest.mark.parametrize("task", list(TASKS))
 def test_episode_metrics_equal_maniskill_vector_env(task):
+    needs_one_gym_env()
     env = shared_env(task)
     raw = env._env
     limit = TASKS[task]
