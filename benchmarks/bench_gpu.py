@@ -148,12 +148,10 @@ def main(argv=None) -> int:
     if args.steps < 2 or args.steps % 2:
         p.error("--steps must be even and >= 2 (ActionRepeat(2) takes --steps / 2 outer steps)")
 
+    backend = "gpu"
     if args.cpu_dry_run:
-        out = bench_size(args.env_id, 1, args.steps, 1, 0, args.verbose, backend="physx_cpu")
-        print(report(out["results"], baseline="raw", unit="env-step"))
-        print("bench_gpu: --cpu-dry-run: the code ran on the CPU sim with one env; these are no GPU figures")
-        return 0
-    if not torch.cuda.is_available():
+        backend, args.envs, args.rounds, args.warmup = "physx_cpu", [1], 1, 0
+    elif not torch.cuda.is_available():
         msg = ("bench_gpu: no CUDA device (torch.cuda.is_available() is False): nothing measured. "
                "Run it on a GPU machine: bash scripts/gpu_check.sh (benchmarks/README.md, 'GPU kit').")
         print(msg)
@@ -161,17 +159,18 @@ def main(argv=None) -> int:
             save_json(args.out, {"skipped": msg, "args": vars(args)})
         return 0
 
-    gpu = torch.cuda.get_device_name(0)
+    gpu = torch.cuda.get_device_name(0) if backend == "gpu" else "none: --cpu-dry-run (CPU sim, one env; no GPU figures)"
     print(f"bench_gpu: {args.env_id} state obs, GPU sim on {gpu}; {args.steps} physics steps x envs per "
           f"contender per round, {args.rounds} rounds (+{args.warmup} warm-up), medians of wall time")
     print(machine_line())
     if unknown:
         print(f"(ignored arguments: {' '.join(unknown)})")
-    payload = {"args": vars(args), "gpu": gpu, "cuda": torch.version.cuda, "sizes": {}, "summary": {}}
+    payload = {"args": vars(args), "gpu": gpu, "cuda": torch.version.cuda, "sizes": {}, "summary": {},
+               "date": time.strftime("%Y-%m-%d")}
     verdicts = []
     for n in args.envs:
         t0 = time.perf_counter()
-        out = bench_size(args.env_id, n, args.steps, args.rounds, args.warmup, args.verbose)
+        out = bench_size(args.env_id, n, args.steps, args.rounds, args.warmup, args.verbose, backend)
         res = out["results"]
         print(f"\n{n} envs (env built in {out['build_s']:.1f} s, measured in {time.perf_counter() - t0:.1f} s)")
         print(report(res, baseline="raw", unit="env-step"))
@@ -187,8 +186,11 @@ def main(argv=None) -> int:
               f"ManiSkillEnv / ManiSkillVectorEnv = {vs_vec:.3f}x (target <= 1.00x): {'met' if ok else 'NOT met'}")
         payload["sizes"][str(n)] = {"build_s": out["build_s"], **{k: v.as_dict() for k, v in res.items()}}
         payload["summary"][str(n)] = {**line, "ManiSkillEnv_vs_ManiSkillVectorEnv": vs_vec, "targets_met": ok}
+        if args.out:  # after every size: a run stopped by a time limit keeps what it measured
+            save_json(args.out, {**payload, "complete": False})
     payload["targets"] = {"ManiSkillEnv_vs_raw_max": TARGET_VS_RAW, "ManiSkillEnv_vs_ManiSkillVectorEnv_max": 1.0,
                           "met_at_all_sizes": all(verdicts)}
+    payload["complete"] = True
     if args.out:
         save_json(args.out, payload)
         print(f"\nwrote {args.out}")

@@ -255,7 +255,7 @@ summary["tests"] = tests
 bench = {"exit_code": int(bench_rc)}
 try:
     b = json.load(open(os.path.join(out_dir, "bench.json")))
-    bench.update({k: b[k] for k in ("summary", "skipped", "targets") if k in b})
+    bench.update({k: b[k] for k in ("gpu", "summary", "skipped", "targets", "complete") if k in b})
 except (OSError, ValueError):
     bench["json"] = "missing"
 summary["bench"] = bench

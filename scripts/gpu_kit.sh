@@ -142,9 +142,8 @@ fi
 
 # ---------------------------------------------------------------- assemble
 # The repository travels with every command: a part gets what is left of 64 MiB.
-repo_bytes="$( { git ls-files -z; git ls-files -z --others --exclude-standard; } |
-    xargs -0 -r du -cb 2>/dev/null | tail -1 | cut -f1)"
-repo_bytes="${repo_bytes:-0}"
+repo_bytes="$( { { git ls-files -z; git ls-files -z --others --exclude-standard; } 2>/dev/null |
+    xargs -0 -r stat -c %s 2>/dev/null || true; } | awk '{ s += $1 } END { print s + 0 }')"
 
 rm -rf "$KIT.tmp" && mkdir -p "$KIT.tmp"
 "$PY" - "$CACHE" "$KIT.tmp" "$PART_MIB" "$repo_bytes" "${PINS[@]}" <<'EOF'
