@@ -131,10 +131,9 @@ def test_lockstep_equal_to_maniskill_calls(task):
             prev_info = {k: _merge(done, v, prev_info[k]) for k, v in tensor_infos(reset_info).items()}
             n_partial += 1
     assert i == len(calls), f"{len(calls) - i} ManiSkill calls after the last step"
+    print(f"{task}: {len(acts)} steps, {n_full} full (seeded) resets, {n_partial} partial resets")
     assert n_full + n_partial >= 2, "the rollout should span several episodes"
-    if task == "PushCube-v1":
-        assert n_full >= 2  # the time limit ends every episode together
-    elif NUM_ENVS > 1:
+    if task == "MS-CartpoleBalance-v1" and NUM_ENVS > 1:
         assert n_partial >= 1, "Cartpole envs should fail at different steps (partial resets)"
 
 
