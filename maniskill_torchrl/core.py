@@ -299,7 +299,8 @@ class EpisodeStats:
         total = self._return + reward
         n1 = n + 1
         block_end = n1 % 8 == 0
-        if block_end.any():
+        # On an accelerator .any() would be a host sync per step: always take the (masked) update.
+        if n1.device.type != "cpu" or block_end.any():
             blocks = torch.where(
                 _expand_mask(n1 == 8, self._part), self._part, self._blocks + self._part
             )
