@@ -20,6 +20,12 @@ returns the number of units it did (or ``None`` for the ``units`` given to
 :func:`interleave`). Untimed per-round set-up (a seeded reset, say) goes into
 an optional ``setup`` callable: it runs just before the contender's timed call.
 
+For contenders that must each start from a fresh interpreter (multi-process
+pipelines: their worker processes, start-up state and imported modules must not
+leak from one contender into the next), :func:`alternate_processes` runs every
+round as one child process per contender, in the same rotating order, and reads
+back what each child measured (:func:`child_result` writes it).
+
 Example::
 
     from common import Contender, interleave, report
@@ -38,8 +44,10 @@ import gc
 import json
 import os
 import platform
+import signal
 import statistics
 import subprocess
+import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -54,6 +62,12 @@ __all__ = [
     "machine_line",
     "save_json",
     "make_actions",
+    "ProcessContender",
+    "alternate_processes",
+    "child_result",
+    "RESULT_MARKER",
+    "busy_cores",
+    "wait_for_quiet",
 ]
 
 
@@ -271,3 +285,189 @@ def make_actions(space, n: int, batch: tuple = (), seed: int = 0) -> list:
     low = torch.as_tensor(space.low, dtype=torch.float32)
     high = torch.as_tensor(space.high, dtype=torch.float32)
     return [low + (high - low) * torch.rand(tuple(batch) + tuple(space.shape), generator=g) for _ in range(n)]
+
+
+# ----------------------------------------------------------------------------- one process per run
+RESULT_MARKER = "@@bench-result "
+
+
+def child_result(units: int | None = None, wall_s: float | None = None, cpu_s: float | None = None,
+                 *, skipped: str | None = None, **extra) -> None:
+    """Reports a child's measurement to :func:`alternate_processes` (one marked JSON line on stdout).
+
+    ``units`` done in ``wall_s`` seconds of wall time and ``cpu_s`` seconds of the child's own CPU
+    time; or ``skipped=reason`` when the contender cannot run here (the parent then drops it from
+    later rounds). ``extra`` entries (JSON-serialisable) are kept per round in ``ProcessResult.extra``.
+    """
+    payload = {"units": units, "wall_s": wall_s, "cpu_s": cpu_s, "skipped": skipped, **extra}
+    sys.stdout.write(RESULT_MARKER + json.dumps(payload, default=str) + "\n")
+    sys.stdout.flush()
+
+
+def _cpu_jiffies() -> tuple[int, int] | None:
+    try:
+        with open("/proc/stat") as f:
+            fields = [int(x) for x in f.readline().split()[1:]]
+    except (OSError, ValueError):
+        return None
+    idle = fields[3] + (fields[4] if len(fields) > 4 else 0)  # idle + iowait
+    return sum(fields[:8]), idle  # user..steal; guest time is already in user
+
+
+def busy_cores(interval: float = 1.0) -> float | None:
+    """Cores kept busy on this machine over ``interval`` seconds (all processes; Linux ``/proc/stat``).
+
+    ``None`` where ``/proc/stat`` cannot be read."""
+    a = _cpu_jiffies()
+    time.sleep(interval)
+    b = _cpu_jiffies()
+    if a is None or b is None or b[0] == a[0]:
+        return None
+    cores = os.cpu_count() or 1
+    return cores * (1.0 - (b[1] - a[1]) / (b[0] - a[0]))
+
+
+def wait_for_quiet(max_busy: float = 0.3, max_wait: float = 120.0, interval: float = 1.0,
+                   verbose: bool = False) -> float | None:
+    """Waits until other processes keep fewer than ``max_busy`` cores busy (sampled every
+    ``interval`` s), at most ``max_wait`` seconds; returns the last reading (``None`` if unknown).
+
+    For timings on a machine shared with other jobs: call it before each timed run (not while
+    this process's own workers are running) and record the reading next to the result."""
+    t0 = time.perf_counter()
+    warned = False
+    while True:
+        busy = busy_cores(interval)
+        if busy is None or busy < max_busy or time.perf_counter() - t0 >= max_wait:
+            return busy
+        if verbose and not warned:
+            print(f"  (machine busy: {busy:.2f} cores used by others; waiting up to {max_wait:.0f} s)", flush=True)
+            warned = True
+
+
+@dataclass
+class ProcessContender:
+    """One contender run as a child process: ``argv`` (``[sys.executable, script, ...]``) must end
+    by calling :func:`child_result` once."""
+
+    name: str
+    argv: list[str]
+    env: dict[str, str] | None = None
+
+
+@dataclass
+class ProcessResult(Result):
+    """A :class:`Result` from child processes, plus per-round extras and a note when skipped or failed."""
+
+    extra: list[dict] = field(default_factory=list)
+    note: str | None = None
+    failures: int = 0
+
+    @property
+    def ok(self) -> bool:
+        return bool(self.per_unit)
+
+    def as_dict(self) -> dict:
+        d = super().as_dict() if self.per_unit else {"name": self.name, "clock": self.clock}
+        d.update({"extra": self.extra, "note": self.note, "failures": self.failures})
+        return d
+
+
+def _run_child(c: ProcessContender, timeout: float, cwd: str | None) -> tuple[dict | None, str]:
+    """Runs one child in its own session (so a hung worker tree is killed as a whole)."""
+    env = dict(os.environ, PYTHONUNBUFFERED="1", **(c.env or {}))
+    proc = subprocess.Popen(c.argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env=env, cwd=cwd, start_new_session=True)
+    try:
+        out, _ = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        out = ""
+        for sig in (signal.SIGTERM, signal.SIGKILL):
+            try:
+                os.killpg(proc.pid, sig)
+            except ProcessLookupError:
+                break
+            try:
+                out, _ = proc.communicate(timeout=5)
+                break
+            except subprocess.TimeoutExpired:
+                continue
+        return None, f"timed out after {timeout:.0f} s\n{(out or '')[-2000:]}"
+    finally:
+        # Workers the child left behind (it exits, they linger) die with its session.
+        try:
+            os.killpg(proc.pid, signal.SIGKILL)
+        except (ProcessLookupError, PermissionError):
+            pass
+    payload = None
+    for line in out.splitlines():
+        if line.startswith(RESULT_MARKER):
+            payload = json.loads(line[len(RESULT_MARKER):])
+    if payload is None:
+        return None, f"exit {proc.returncode}, no result\n{out[-2000:]}"
+    return payload, out
+
+
+def alternate_processes(
+    contenders: Sequence[ProcessContender],
+    *,
+    rounds: int = 3,
+    clock: str = "wall",
+    timeout: float = 300.0,
+    cwd: str | None = None,
+    verbose: bool = False,
+    quiet: tuple[float, float] | None = None,
+    on_result: Callable[[str, int, dict | None], None] | None = None,
+) -> dict[str, ProcessResult]:
+    """Runs each contender ``rounds`` times, each run a fresh child process, rounds alternating.
+
+    Round ``r`` runs every contender once, starting with contender ``r % n`` (the order of
+    :func:`interleave`); children run one at a time. Each child measures itself (warm-up untimed)
+    and reports with :func:`child_result`; scores are its time per unit on ``clock``. A child that
+    reports ``skipped`` is not run again (its reason goes to ``note``); one that fails or times out
+    (its whole process group is killed) counts in ``failures`` and is retried next round.
+    ``quiet=(max_busy, max_wait)`` waits for :func:`wait_for_quiet` before each child and keeps
+    the reading in the round's extras as ``busy_before``.
+    """
+    if clock not in ("wall", "cpu"):
+        raise ValueError(f"clock must be 'wall' or 'cpu', got {clock!r}.")
+    names = [c.name for c in contenders]
+    if len(set(names)) != len(names):
+        raise ValueError(f"Contender names must be unique, got {names}.")
+    results = {c.name: ProcessResult(c.name, clock=clock) for c in contenders}
+    n = len(contenders)
+    for r in range(rounds):
+        for c in (contenders[(r + i) % n] for i in range(n)):
+            res = results[c.name]
+            if res.note is not None and res.note.startswith("skipped"):
+                continue
+            busy = wait_for_quiet(*quiet, verbose=verbose) if quiet is not None else None
+            t0 = time.perf_counter()
+            payload, log = _run_child(c, timeout, cwd)
+            took = time.perf_counter() - t0
+            if on_result is not None:
+                on_result(c.name, r, payload)
+            if payload is None:
+                res.failures += 1
+                res.note = f"failed: {log.strip().splitlines()[0] if log.strip() else 'no output'}"
+                if verbose:
+                    print(f"  round {r}: {c.name:<34} FAILED ({took:.0f} s)\n{log[-1500:]}", flush=True)
+                continue
+            if payload.get("skipped"):
+                res.note = f"skipped: {payload['skipped']}"
+                if verbose:
+                    print(f"  round {r}: {c.name:<34} skipped: {payload['skipped']}", flush=True)
+                continue
+            units, wall, cpu = payload["units"], payload["wall_s"], payload["cpu_s"]
+            res.per_unit.append((wall if clock == "wall" else cpu) / units)
+            res.per_unit_wall.append(wall / units)
+            res.per_unit_cpu.append(cpu / units)
+            res.units.append(units)
+            extra = {k: v for k, v in payload.items() if k not in ("units", "wall_s", "cpu_s", "skipped")}
+            if busy is not None:
+                extra["busy_before"] = round(busy, 3)
+            res.extra.append(extra)
+            if verbose:
+                print(f"  round {r}: {c.name:<34} {units / wall:8.1f} units/s ({units} in {wall:.2f} s; "
+                      f"child ran {took:.1f} s)", flush=True)
+    return results

@@ -1,0 +1,384 @@
+"""Collection frames/s: ManiSkill's gym path against TorchRL collectors, side by side (CPU sim).
+
+Task PickCube-v1, ``obs_mode="state"``, random actions, ``max_episode_steps=50``, at
+``N`` = 1, 2, 4 sub-envs, with and without an action repeat of 2. Contenders:
+
+- ``gym``: ManiSkill's own CPU path, ``gymnasium.vector.AsyncVectorEnv([thunk] * N,
+  context="forkserver")`` with ``thunk = lambda: CPUGymWrapper(gym.make(id, num_envs=1,
+  obs_mode="state", max_episode_steps=50))`` (ManiSkill's ``CPUGymWrapper``; for repeat 2,
+  ``CPUGymWrapper(ActionRepeatWrapper(gym.make(...), 2))``: ManiSkill's ``ActionRepeatWrapper``
+  works on the batched torch env, so it goes under ``CPUGymWrapper``), stepped with
+  ``envs.step(envs.action_space.sample())``; N frames per call (with gymnasium's default
+  next-step autoreset, one call in 51 per sub-env is a reset, not a sim step: the gym path
+  is credited ~2% more frames than sim steps it takes);
+- ``batched``: ``Collector(ManiSkillEnv(id, num_envs=N, obs_mode="state",
+  max_episode_steps=50), policy=None)`` (``TransformedEnv(..., ActionRepeat(2))`` for
+  repeat 2): the batched CPU env. Skipped with a note when its construction raises;
+- ``parallel``: ``Collector(ParallelEnv(N, lambda: TransformedEnv(ManiSkillEnv(id,
+  obs_mode="state", max_episode_steps=50), CPUUnbatch())), policy=None)``, what TorchRL
+  users write by habit (``Compose(CPUUnbatch(), ActionRepeat(2))`` inside the workers for
+  repeat 2), with TorchRL's defaults;
+- ``parallel:<options>``: the same with settings changed (comma-separated options):
+  ``t1`` (``torch.set_num_threads(1)`` in the main process before building the env),
+  ``nobuf`` (``use_buffers=False``), ``mp=<method>`` (``mp_start_method``),
+  ``lib`` (:class:`maniskill_torchrl.parallel.ParallelEnv`, the library's settings),
+  ``wait=<spin|sleep>`` (that class with the given wait strategy).
+
+Frames are agent steps (the collector's frames; gym: N per ``step``). Each run is a fresh
+Python process (this script with ``--child``) that builds the pipeline, warms up untimed
+(first reset and one batch / 50 steps), then collects for ``--seconds`` of wall time,
+counting whole batches. Rounds alternate (round ``r`` runs every pipeline once, in a
+rotating order, :func:`common.alternate_processes`); medians over rounds are reported, with
+ratios to the gym path at the same N and repeat. The child also records its own CPU time
+and its workers' (``main cpu``: cores the main process keeps busy; ``workers cpu``: cores
+its worker processes keep busy, summed).
+
+Run: ``python benchmarks/bench_collection.py [--n 1 2 4] [--repeat 1 2] [--rounds 3]
+[--seconds 4] [--pipelines gym batched parallel parallel:lib] [--out results.json]``.
+The default run takes about 10 minutes on 2 cores.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+import warnings
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, HERE)
+from common import (  # noqa: E402
+    ProcessContender,
+    alternate_processes,
+    child_result,
+    machine_line,
+    save_json,
+)
+
+warnings.filterwarnings("ignore")
+
+ENV_ID = "PickCube-v1"
+EPISODE = 50
+SEED = 0
+DEFAULT_PIPELINES = ["gym", "batched", "parallel", "parallel:t1", "parallel:lib"]
+TARGETS = {"batched": 1.0, "parallel:lib": 0.9}
+
+
+# ============================================================================ child side
+def _maniskill_kwargs() -> dict:
+    return {"obs_mode": "state", "max_episode_steps": EPISODE}
+
+
+def _quiet() -> None:
+    import logging
+
+    logging.getLogger("mani_skill").setLevel(logging.ERROR)
+    warnings.filterwarnings("ignore")
+
+
+def _gym_thunk(repeat: int):
+    import gymnasium as gym
+
+    import mani_skill.envs  # noqa: F401
+    from mani_skill.utils.wrappers import ActionRepeatWrapper, CPUGymWrapper
+
+    _quiet()
+    env = gym.make(ENV_ID, num_envs=1, **_maniskill_kwargs())
+    if repeat > 1:
+        env = ActionRepeatWrapper(env, repeat)
+    return CPUGymWrapper(env)
+
+
+def _worker_env(repeat: int):
+    """One ParallelEnv worker: ManiSkillEnv -> CPUUnbatch (-> ActionRepeat)."""
+    from torchrl.envs import Compose, TransformedEnv
+
+    from maniskill_torchrl import ActionRepeat, CPUUnbatch, ManiSkillEnv
+
+    _quiet()
+    transforms = [CPUUnbatch()] + ([ActionRepeat(repeat)] if repeat > 1 else [])
+    return TransformedEnv(ManiSkillEnv(ENV_ID, **_maniskill_kwargs()), Compose(*transforms))
+
+
+class _CPUMeter:
+    """This process's CPU time and that of its live descendants (the worker processes)."""
+
+    def __init__(self) -> None:
+        import psutil
+
+        self._me = psutil.Process()
+
+    def workers(self) -> dict[int, float]:
+        out = {}
+        for p in self._me.children(recursive=True):
+            try:
+                t = p.cpu_times()
+                out[p.pid] = t.user + t.system
+            except Exception:  # noqa: BLE001 - a process that just exited
+                pass
+        return out
+
+    def snapshot(self) -> tuple[float, dict[int, float]]:
+        return time.process_time(), self.workers()
+
+    @staticmethod
+    def delta(a, b) -> tuple[float, float]:
+        main = b[0] - a[0]
+        workers = sum(t - a[1].get(pid, 0.0) for pid, t in b[1].items())
+        return main, workers
+
+
+def _parse_options(spec: str) -> tuple[str, dict[str, str]]:
+    kind, _, rest = spec.partition(":")
+    opts: dict[str, str] = {}
+    for item in filter(None, rest.split(",")):
+        k, _, v = item.partition("=")
+        opts[k] = v or "1"
+    return kind, opts
+
+
+def _time_collector(collector, seconds: float, meter: _CPUMeter) -> dict:
+    it = iter(collector)
+    next(it)  # warm-up: first reset and one batch, untimed
+    frames = 0
+    a = meter.snapshot()
+    t0 = time.perf_counter()
+    while True:
+        batch = next(it)
+        frames += batch.numel()
+        wall = time.perf_counter() - t0
+        if wall >= seconds:
+            break
+    b = meter.snapshot()
+    main_cpu, workers_cpu = meter.delta(a, b)
+    return {"units": frames, "wall_s": wall, "cpu_s": main_cpu, "workers_cpu_s": workers_cpu}
+
+
+def child_gym(n: int, repeat: int, seconds: float, opts: dict) -> dict:
+    import functools
+
+    import gymnasium as gym
+
+    meter = _CPUMeter()
+    envs = gym.vector.AsyncVectorEnv([functools.partial(_gym_thunk, repeat)] * n, context="forkserver")
+    try:
+        envs.reset(seed=SEED)
+        envs.action_space.seed(SEED)
+        sample, step = envs.action_space.sample, envs.step
+        for _ in range(EPISODE):  # warm-up
+            step(sample())
+        frames = 0
+        a = meter.snapshot()
+        t0 = time.perf_counter()
+        while True:
+            for _ in range(10):
+                step(sample())
+            frames += 10 * n
+            wall = time.perf_counter() - t0
+            if wall >= seconds:
+                break
+        b = meter.snapshot()
+    finally:
+        envs.close()
+    main_cpu, workers_cpu = meter.delta(a, b)
+    return {"units": frames, "wall_s": wall, "cpu_s": main_cpu, "workers_cpu_s": workers_cpu}
+
+
+def child_batched(n: int, repeat: int, seconds: float, opts: dict) -> dict:
+    from torchrl.collectors import Collector
+    from torchrl.envs import TransformedEnv
+
+    from maniskill_torchrl import ActionRepeat, ManiSkillEnv
+
+    if "t1" in opts:
+        import torch
+
+        torch.set_num_threads(1)
+    meter = _CPUMeter()
+    try:
+        env = ManiSkillEnv(ENV_ID, num_envs=n, **_maniskill_kwargs())
+    except Exception as err:  # noqa: BLE001 - reported as a skip, e.g. no batched CPU env yet
+        return {"skipped": f"ManiSkillEnv({ENV_ID!r}, num_envs={n}) raised {type(err).__name__}: {err}"}
+    if repeat > 1:
+        env = TransformedEnv(env, ActionRepeat(repeat))
+    env.set_seed(SEED)
+    collector = Collector(env, policy=None, frames_per_batch=EPISODE * n, total_frames=-1)
+    try:
+        return _time_collector(collector, seconds, meter)
+    finally:
+        collector.shutdown()
+
+
+def child_parallel(n: int, repeat: int, seconds: float, opts: dict) -> dict:
+    import functools
+
+    import torch
+    from torchrl.collectors import Collector
+
+    if "t1" in opts:
+        torch.set_num_threads(1)
+    kwargs: dict = {}
+    if "nobuf" in opts:
+        kwargs["use_buffers"] = False
+    if "mp" in opts:
+        kwargs["mp_start_method"] = opts["mp"]
+    if "lib" in opts or "wait" in opts:
+        from maniskill_torchrl.parallel import ParallelEnv
+
+        if "wait" in opts:
+            kwargs["wait"] = opts["wait"]
+    else:
+        from torchrl.envs import ParallelEnv
+    meter = _CPUMeter()
+    # A partial, not a lambda, only so that the option-free case matches either way: TorchRL
+    # pickles both with cloudpickle.
+    env = ParallelEnv(n, functools.partial(_worker_env, repeat), **kwargs)
+    env.set_seed(SEED)
+    collector = Collector(env, policy=None, frames_per_batch=EPISODE * n, total_frames=-1)
+    try:
+        out = _time_collector(collector, seconds, meter)
+        out["main_threads"] = torch.get_num_threads()
+        return out
+    finally:
+        collector.shutdown()
+
+
+def child_multisync(n: int, repeat: int, seconds: float, opts: dict) -> dict:
+    """``Collector(make_env, backend="process", num_collectors=N)``: one env and one collector
+    per process (TorchRL's ``MultiSyncCollector``), batches gathered per batch, not per step."""
+    import functools
+
+    from torchrl.collectors import Collector
+
+    meter = _CPUMeter()
+    collector = Collector(functools.partial(_worker_env, repeat), policy=None, frames_per_batch=EPISODE * n,
+                          total_frames=-1, backend="process", num_collectors=n, sync=opts.get("sync", "1") == "1")
+    collector.set_seed(SEED)
+    try:
+        return _time_collector(collector, seconds, meter)
+    finally:
+        collector.shutdown()
+
+
+CHILDREN = {"gym": child_gym, "batched": child_batched, "parallel": child_parallel, "multisync": child_multisync}
+
+
+def run_child(spec: str, n: int, repeat: int, seconds: float) -> None:
+    _quiet()
+    kind, opts = _parse_options(spec)
+    if kind not in CHILDREN:
+        raise SystemExit(f"unknown pipeline {spec!r}; kinds: {sorted(CHILDREN)}")
+    out = CHILDREN[kind](n, repeat, seconds, opts)
+    child_result(**out)
+    sys.stdout.flush()
+    os._exit(0)  # skip interpreter teardown (SAPIEN, worker joins): nothing left to measure
+
+
+# ============================================================================ parent side
+def cell_name(spec: str, n: int, repeat: int) -> str:
+    return f"{spec} N={n} r={repeat}"
+
+
+def fmt_table(results: dict, specs: list[str], ns: list[int], repeats: list[int]) -> str:
+    rows = [
+        "| pipeline | N | repeat | frames/s (median) | min-max | ratio to gym | main cpu | workers cpu | rounds |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    notes = []
+    for repeat in repeats:
+        for n in ns:
+            base = results.get(cell_name("gym", n, repeat))
+            base_fps = 1.0 / base.median if base is not None and base.ok else None
+            for spec in specs:
+                res = results[cell_name(spec, n, repeat)]
+                if not res.ok:
+                    rows.append(f"| {spec} | {n} | {repeat} | - | - | - | - | - | 0 |")
+                    if res.note:
+                        notes.append(f"- {spec} N={n} repeat={repeat}: {res.note.splitlines()[0][:300]}")
+                    continue
+                fps = 1.0 / res.median
+                lo, hi = 1.0 / max(res.per_unit), 1.0 / min(res.per_unit)
+                wall = [u * p for u, p in zip(res.units, res.per_unit_wall)]
+                main = statistics.median(u * p / w for u, p, w in zip(res.units, res.per_unit_cpu, wall))
+                workers = statistics.median(e.get("workers_cpu_s", 0.0) / w for e, w in zip(res.extra, wall))
+                ratio = f"{fps / base_fps:.2f}x" if base_fps else "-"
+                rows.append(
+                    f"| {spec} | {n} | {repeat} | {fps:.0f} | {lo:.0f}-{hi:.0f} | {ratio} | "
+                    f"{main:.2f} | {workers:.2f} | {len(res.per_unit)} |"
+                )
+    return "\n".join(rows + ([""] + notes if notes else []))
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--n", type=int, nargs="+", default=[1, 2, 4], help="sub-envs (default 1 2 4)")
+    p.add_argument("--repeat", type=int, nargs="+", default=[1, 2], help="action repeats (default 1 2)")
+    p.add_argument("--rounds", type=int, default=3, help="alternating rounds (default 3)")
+    p.add_argument("--seconds", type=float, default=3.0, help="timed collection per run (default 3)")
+    p.add_argument("--pipelines", nargs="+", default=DEFAULT_PIPELINES,
+                   help=f"contenders (default {' '.join(DEFAULT_PIPELINES)})")
+    p.add_argument("--out", "--json", dest="out", default=None, help="write all results as JSON here")
+    p.add_argument("--timeout", type=float, default=240.0, help="per child process (killed after)")
+    p.add_argument("--max-busy", type=float, default=0.3,
+                   help="before each run, wait until other processes use fewer cores than this (default 0.3)")
+    p.add_argument("--max-wait", type=float, default=60.0,
+                   help="longest wait for that, in seconds; 0 turns the wait off (default 60)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no per-run lines")
+    p.add_argument("--child", default=None, help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+
+    if args.child is not None:
+        run_child(args.child, args.n[0], args.repeat[0], args.seconds)
+        return 0
+
+    specs = list(dict.fromkeys(args.pipelines))
+    if "gym" not in specs:
+        specs.insert(0, "gym")
+    print(machine_line())
+    t0 = time.perf_counter()
+    contenders = [
+        ProcessContender(
+            cell_name(spec, n, repeat),
+            [sys.executable, os.path.abspath(__file__), "--child", spec, "--n", str(n),
+             "--repeat", str(repeat), "--seconds", str(args.seconds)],
+        )
+        for repeat in args.repeat
+        for n in args.n
+        for spec in specs
+    ]
+    results = alternate_processes(contenders, rounds=args.rounds, timeout=args.timeout,
+                                  cwd=os.path.dirname(HERE), verbose=not args.quiet,
+                                  quiet=(args.max_busy, args.max_wait) if args.max_wait > 0 else None)
+    took = time.perf_counter() - t0
+    table = fmt_table(results, specs, args.n, args.repeat)
+    print(f"\nPickCube-v1 state, random actions, episodes of {EPISODE} steps; frames = agent steps; "
+          f"median of {args.rounds} rounds x {args.seconds:g} s, one process per run ({took:.0f} s in all)\n")
+    print(table)
+    missed = []
+    for spec, target in TARGETS.items():
+        if spec not in specs:
+            continue
+        for repeat in args.repeat:
+            for n in args.n:
+                res, base = results[cell_name(spec, n, repeat)], results[cell_name("gym", n, repeat)]
+                if res.ok and base.ok and base.median / res.median < target:
+                    missed.append(f"{spec} N={n} repeat={repeat}: {base.median / res.median:.2f}x < {target}x")
+    if missed:
+        print("\nbelow target: " + "; ".join(missed))
+    if args.out:
+        save_json(args.out, {
+            "benchmark": "bench_collection",
+            "settings": {"env_id": ENV_ID, "episode": EPISODE, "n": args.n, "repeat": args.repeat,
+                         "rounds": args.rounds, "seconds": args.seconds, "pipelines": specs},
+            "wall_s": took,
+            "table": table,
+            "results": {k: v.as_dict() for k, v in results.items()},
+        })
+        print(f"\nwrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

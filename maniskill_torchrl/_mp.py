@@ -1,0 +1,78 @@
+"""Process start-up facts for ManiSkill under multiprocessing (no TorchRL import: the gym shim may use it).
+
+Two facts, measured with ManiSkill 3.0.1 / SAPIEN 3 on Mesa lavapipe:
+
+- A process forked from a parent that has created a SAPIEN renderer (any ManiSkill env,
+  even one already closed) deadlocks when it builds or frees a SAPIEN scene: the Vulkan
+  driver's threads do not survive ``fork`` and the child waits forever on a condition
+  variable (``svulkan2::core::Context::~Context`` -> ``pthread_cond_wait``). Importing
+  ``mani_skill`` / ``sapien`` alone is harmless; the renderer is what loads the Vulkan
+  loader (``libvulkan.so.1``) and driver into the process, which :func:`vulkan_loaded`
+  detects.
+- CPython pins the global start method to the platform default (``"fork"`` on Linux before
+  Python 3.14) the first time any process is started, whatever context started it:
+  ``multiprocessing.spawn.get_preparation_data`` calls ``get_start_method()``, which fixes
+  the default context. So ``gymnasium.vector.AsyncVectorEnv(..., context="forkserver")``
+  leaves ``multiprocessing.get_start_method() == "fork"`` behind, and TorchRL imported after
+  that takes it for the user's choice (it only sets ``"spawn"`` when nothing is set), so its
+  ``ParallelEnv`` forks: with a SAPIEN renderer in the parent (gymnasium's AsyncVectorEnv
+  builds one env in the parent to read the spaces) the workers hang.
+  :func:`prefer_spawn` sets ``"spawn"`` when nothing is set yet, as ``import torchrl`` does.
+"""
+from __future__ import annotations
+
+import multiprocessing as mp
+
+__all__ = ["vulkan_loaded", "prefer_spawn", "FORK_AFTER_RENDERER", "check_start_method"]
+
+FORK_AFTER_RENDERER = (
+    "This process has created a SAPIEN renderer (a ManiSkill env was built here), and processes "
+    "forked from it deadlock when they build a ManiSkill env (SAPIEN's Vulkan driver threads do "
+    "not survive fork). Start the workers with 'spawn' or 'forkserver': pass "
+    "mp_start_method='spawn' to ParallelEnv, or call multiprocessing.set_start_method('spawn') "
+    "at the top of your script, before anything starts a process. (Python fixes the global "
+    "start method to 'fork' the first time any process starts, e.g. in gymnasium's "
+    "AsyncVectorEnv(context='forkserver'); TorchRL imported after that uses 'fork'.)"
+)
+
+
+def vulkan_loaded() -> bool:
+    """Whether the Vulkan loader is mapped into this process (SAPIEN loads it with its renderer).
+
+    Linux only (reads ``/proc/self/maps``); ``False`` where that cannot be read.
+    """
+    try:
+        with open("/proc/self/maps") as f:
+            for line in f:
+                name = line.rsplit("/", 1)[-1]
+                if name.startswith("libvulkan.so") or name.startswith("libvulkan_"):
+                    return True
+    except OSError:
+        return False
+    return False
+
+
+def prefer_spawn() -> str | None:
+    """Sets the global start method to ``"spawn"`` if nothing has set one yet; returns the method in force.
+
+    The same as ``import torchrl`` does at import, for code that may start processes before
+    TorchRL is imported (the gym shim's ``AsyncVectorEnv`` users). Without it, the first process
+    started with any context pins ``"fork"`` (see the module docstring). In a child process
+    the method is already set and nothing changes.
+    """
+    current = mp.get_start_method(allow_none=True)
+    if current is None:
+        try:
+            mp.set_start_method("spawn")
+        except RuntimeError:  # set concurrently
+            pass
+        current = mp.get_start_method(allow_none=True)
+    return current
+
+
+def check_start_method(method: str | None) -> None:
+    """Raises ``RuntimeError`` (:data:`FORK_AFTER_RENDERER`) if ``method`` forks a process holding a SAPIEN renderer."""
+    if method is None:
+        method = mp.get_start_method(allow_none=True) or "spawn"  # TorchRL's default
+    if method == "fork" and vulkan_loaded():
+        raise RuntimeError(FORK_AFTER_RENDERER)

@@ -1,0 +1,207 @@
+"""``ParallelEnv`` of single CPU ManiSkill envs, with the settings that keep the cores for the workers.
+
+:class:`ParallelEnv` is TorchRL's :class:`torchrl.envs.ParallelEnv` with three changes, each
+found by profiling ``Collector(ParallelEnv(N, ManiSkillEnv + CPUUnbatch))`` on 2 cores
+(``benchmarks/bench_collection.py``; ``benchmarks/RESULTS.md`` has the figures):
+
+1. **Waiting for the workers sleeps instead of spinning.** TorchRL 0.14 waits for a step's
+   results by spin-polling one shared-memory flag per worker
+   (``ParallelEnv._wait_for_workers``), which keeps a whole core busy for the entire step.
+   With as many workers as cores, that core is taken from the workers (one ManiSkill step is
+   ~2 ms of CPU), so a ``ParallelEnv(2)`` on 2 cores collected at ~0.4x the speed of
+   gymnasium's ``AsyncVectorEnv``, which blocks in ``recv``. Here the parent polls the same
+   flags with short sleeps (``poll_s``), after a first sleep of most of the shortest recent wait.
+   ``wait="auto"`` (default) sleeps when the workers have no core to spare (fewer usable
+   cores than workers + 1) and keeps TorchRL's spin otherwise; ``"sleep"`` / ``"spin"`` force
+   one. Only the shared-buffer path (``use_buffers=True``, TorchRL's default) spins; the
+   ``use_buffers=False`` path already blocks on the pipes and is left as it is.
+2. **The start method defaults to ``"spawn"``**, whatever ``multiprocessing``'s global start
+   method says, unless ``mp_start_method`` is given. Python pins that global to ``"fork"`` the
+   first time any process starts (gymnasium's ``AsyncVectorEnv(context="forkserver")``
+   does), and ManiSkill workers forked from a parent that has built a ManiSkill env hang
+   forever (see :mod:`maniskill_torchrl._mp`).
+3. **Forking a parent that holds a SAPIEN renderer fails at once** with a ``RuntimeError``
+   that says what to do, instead of hanging (``mp_start_method="fork"`` after a ManiSkill env
+   was built in this process).
+
+Everything else (specs, seeding, ``"_reset"`` / ``"_step"`` masks, collectors, ``close``) is
+TorchRL's. Private TorchRL names used, all of ``torchrl.envs.ParallelEnv`` 0.14:
+``_wait_for_workers`` (overridden), ``_start_workers`` (wrapped), and the attributes
+``_use_buffers``, ``_shm_done_flags``, ``_worker_indices``, ``_workers``, ``_mp_start_method``,
+``BATCHED_PIPE_TIMEOUT`` and ``_shutdown_workers`` (read / called as TorchRL's own wait does).
+
+Examples:
+    >>> from torchrl.envs import TransformedEnv
+    >>> from maniskill_torchrl import CPUUnbatch, ManiSkillEnv
+    >>> from maniskill_torchrl.parallel import ParallelEnv
+    >>> def make_env():
+    ...     return TransformedEnv(ManiSkillEnv("PickCube-v1", obs_mode="state"), CPUUnbatch())
+    >>> env = ParallelEnv(2, make_env)  # batch [2]; a drop-in for torchrl.envs.ParallelEnv
+    >>> env.rollout(3)["next", "observation"].shape
+    torch.Size([2, 3, 42])
+    >>> env.close()
+"""
+from __future__ import annotations
+
+import os
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
+from typing import Any, Literal
+
+from torchrl.envs import ParallelEnv as _TorchRLParallelEnv
+
+from maniskill_torchrl._mp import check_start_method
+
+__all__ = ["ParallelEnv", "set_batch_policy", "usable_cores"]
+
+WaitMode = Literal["auto", "sleep", "spin"]
+
+# Between two checks of worker liveness and of the timeout while sleeping (s).
+_HEALTH_CHECK_S = 0.05
+# The first sleep of a wait covers this share of the shortest of the last _RECENT waits (the rest
+# is polled): steps vary (an episode's reset step takes longer), and oversleeping delays the
+# whole batch, so a short wait must not be followed by a long first sleep.
+_FIRST_SLEEP_SHARE = 0.8
+_RECENT = 16
+
+
+def set_batch_policy(pid: int) -> bool:
+    """Puts every thread of process ``pid`` under Linux's ``SCHED_BATCH`` policy; ``False`` where unsupported.
+
+    ``SCHED_BATCH`` keeps the normal fair share (same nice weight) but a thread that wakes up
+    does not preempt the running one. A ParallelEnv parent sends its step command to each worker
+    in turn through a pipe; pipe wake-ups are "synchronous" hints, so the kernel tends to run the
+    woken worker on the parent's core at once, and the parent waits a whole time slice
+    (~1 ms per worker measured on 2 cores) before it can send the next command. With the workers
+    as batch threads, the parent finishes sending first. Unprivileged; ignores threads that exit
+    meanwhile.
+    """
+    policy = getattr(os, "SCHED_BATCH", None)
+    if policy is None or not hasattr(os, "sched_setscheduler"):
+        return False
+    try:
+        tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
+    except OSError:
+        tids = [pid]
+    done = False
+    for tid in tids:
+        try:
+            os.sched_setscheduler(tid, policy, os.sched_param(0))
+            done = True
+        except OSError:
+            pass
+    return done
+
+
+def usable_cores() -> int:
+    """CPU cores this process may run on (its affinity mask where the OS has one)."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
+
+
+class ParallelEnv(_TorchRLParallelEnv):
+    """TorchRL's ``ParallelEnv`` whose parent sleeps while its workers step (see the module docstring).
+
+    Args:
+        num_workers (int): worker processes, one env each.
+        create_env_fn (callable or list of callables): builds one worker's env.
+
+    Keyword Args:
+        create_env_kwargs (dict or list of dicts, optional): as in TorchRL.
+        wait (str): ``"auto"`` (default: ``"sleep"`` when ``usable_cores() < num_workers + 1``,
+            else ``"spin"``), ``"sleep"`` or ``"spin"`` (TorchRL's wait).
+        poll_s (float): the sleep between two polls of the workers' done flags, in seconds
+            (default 100 us; Linux adds its ~50 us timer slack).
+        mp_start_method (str, optional): ``"spawn"`` when not given (TorchRL's documented
+            default, kept even if ``multiprocessing``'s global method is ``"fork"``).
+            ``"fork"`` raises ``RuntimeError`` at start if this process has built a ManiSkill env.
+        **kwargs: any other :class:`torchrl.envs.ParallelEnv` argument (``use_buffers``,
+            ``num_threads``, ``metadata_from_workers``, ``shutdown_timeout``...).
+    """
+
+    def __init__(
+        self,
+        num_workers: int,
+        create_env_fn: Callable[..., Any] | Sequence[Callable[..., Any]],
+        *,
+        create_env_kwargs: dict | Sequence[dict] | None = None,
+        wait: WaitMode = "auto",
+        poll_s: float = 1e-4,
+        batch_workers: bool = True,
+        mp_start_method: str | None = None,
+        **kwargs: Any,
+    ) -> None:
+        if wait not in ("auto", "sleep", "spin"):
+            raise ValueError(f"wait must be 'auto', 'sleep' or 'spin', got {wait!r}.")
+        if not poll_s > 0:
+            raise ValueError(f"poll_s must be > 0, got {poll_s!r}.")
+        # Set before super().__init__: metadata_from_workers=True starts the workers in there.
+        self._wait_mode: WaitMode = wait
+        self._sleeps = wait == "sleep" or (wait == "auto" and usable_cores() < num_workers + 1)
+        self._poll_s = float(poll_s)
+        self._batch_workers = bool(batch_workers)
+        self._recent_waits: deque[float] = deque(maxlen=_RECENT)
+        super().__init__(
+            num_workers,
+            create_env_fn,
+            create_env_kwargs=create_env_kwargs,
+            mp_start_method="spawn" if mp_start_method is None else mp_start_method,
+            **kwargs,
+        )
+
+    @property
+    def wait(self) -> str:
+        """The wait strategy in use: ``"sleep"`` or ``"spin"``."""
+        return "sleep" if self._sleeps else "spin"
+
+    def _start_workers(self) -> None:
+        check_start_method(self._mp_start_method)
+        super()._start_workers()
+        if self._batch_workers:
+            for worker in self._workers:
+                set_batch_policy(worker.pid)
+
+    def _wait_for_workers(self, workers_range) -> None:
+        if not (self._sleeps and self._use_buffers):
+            return super()._wait_for_workers(workers_range)
+        # The same shared-memory flags TorchRL's wait spins on (set to 1 by a worker when its
+        # step / reset is written), polled between sleeps.
+        flags, indices = self._shm_done_flags, self._worker_indices
+        pending = list(workers_range)
+        t0 = time.perf_counter()
+        first = _FIRST_SLEEP_SHARE * min(self._recent_waits, default=0.0)
+        if first > 2 * self._poll_s:
+            time.sleep(min(first, _HEALTH_CHECK_S))
+        poll, sleep = self._poll_s, time.sleep
+        next_check = t0 + _HEALTH_CHECK_S
+        while True:
+            pending = [i for i in pending if not flags[indices[i]]]
+            if not pending:
+                break
+            now = time.perf_counter()
+            if now >= next_check:
+                self._check_workers(pending, now - t0)
+                next_check = now + _HEALTH_CHECK_S
+            sleep(poll)
+        for i in workers_range:
+            flags[indices[i]] = 0
+        self._recent_waits.append(time.perf_counter() - t0)
+
+    def _check_workers(self, pending: list[int], waited_s: float) -> None:
+        """Raises (as TorchRL's wait does) if a pending worker died or the pipe timeout passed."""
+        timeout = self.BATCHED_PIPE_TIMEOUT
+        if waited_s > timeout:
+            raise RuntimeError(
+                f"Failed to run all workers within the {timeout} sec time limit. This "
+                "threshold can be increased via the BATCHED_PIPE_TIMEOUT env variable."
+            )
+        for i in pending:
+            worker = self._workers[i]
+            if not worker.is_alive() and not self._shm_done_flags[self._worker_indices[i]]:
+                try:
+                    self._shutdown_workers()
+                except Exception:  # noqa: BLE001 - the dead worker is the error to report
+                    pass
+                raise RuntimeError(f"Cannot proceed, worker {i} dead (exit code {worker.exitcode}).")
