@@ -327,7 +327,7 @@ def busy_cores(interval: float = 1.0) -> float | None:
     return cores * (1.0 - (b[1] - a[1]) / (b[0] - a[0]))
 
 
-def wait_for_quiet(max_busy: float = 0.3, max_wait: float = 120.0, interval: float = 1.0,
+def wait_for_quiet(max_busy: float = 0.3, max_wait: float = 120.0, interval: float = 0.5,
                    verbose: bool = False) -> float | None:
     """Waits until other processes keep fewer than ``max_busy`` cores busy (sampled every
     ``interval`` s), at most ``max_wait`` seconds; returns the last reading (``None`` if unknown).
@@ -373,34 +373,77 @@ class ProcessResult(Result):
         return d
 
 
+def _group_alive(pgid: int) -> bool:
+    try:
+        os.killpg(pgid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _end_group(pgid: int, grace: float = 10.0) -> None:
+    """Ends every process of a child's session: SIGTERM, then SIGKILL what is left after ``grace`` s.
+
+    multiprocessing's resource tracker ignores SIGTERM; it exits by itself (unlinking the
+    semaphores the workers registered) once every process that used it is gone, so it is given
+    the grace period before SIGKILL."""
+    if not _group_alive(pgid):
+        return
+    os.killpg(pgid, signal.SIGTERM)
+    deadline = time.monotonic() + grace
+    while _group_alive(pgid) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    if _group_alive(pgid):
+        try:
+            os.killpg(pgid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+
+
 def _run_child(c: ProcessContender, timeout: float, cwd: str | None) -> tuple[dict | None, str]:
-    """Runs one child in its own session (so a hung worker tree is killed as a whole)."""
+    """Runs one child in its own session and returns its result as soon as it is printed.
+
+    The child may exit right after :func:`child_result` without closing its workers (their
+    teardown is not measured and can take seconds); whatever is left of its session is then
+    ended here, as is the whole session of a child that hangs past ``timeout``."""
+    import threading
+
     env = dict(os.environ, PYTHONUNBUFFERED="1", **(c.env or {}))
     proc = subprocess.Popen(c.argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             env=env, cwd=cwd, start_new_session=True)
+    lines: list[str] = []
+    got = threading.Event()
+
+    def read() -> None:
+        for line in proc.stdout:  # until every process of the session has closed the pipe
+            lines.append(line)
+            if line.startswith(RESULT_MARKER):
+                got.set()
+        got.set()
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    timed_out = not got.wait(timeout)
     try:
-        out, _ = proc.communicate(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        out = ""
-        for sig in (signal.SIGTERM, signal.SIGKILL):
+        if not timed_out:
             try:
-                os.killpg(proc.pid, sig)
-            except ProcessLookupError:
-                break
-            try:
-                out, _ = proc.communicate(timeout=5)
-                break
+                proc.wait(timeout=30)  # the child itself exits right after its result
             except subprocess.TimeoutExpired:
-                continue
-        return None, f"timed out after {timeout:.0f} s\n{(out or '')[-2000:]}"
+                pass
     finally:
-        # Workers the child left behind (it exits, they linger) die with its session.
+        _end_group(proc.pid)
         try:
-            os.killpg(proc.pid, signal.SIGKILL)
-        except (ProcessLookupError, PermissionError):
+            proc.wait(timeout=5)
+        except subprocess.TimeoutExpired:
             pass
+        reader.join(timeout=5)
+    out = "".join(lines)
+    if timed_out:
+        return None, f"timed out after {timeout:.0f} s\n{out[-2000:]}"
     payload = None
-    for line in out.splitlines():
+    for line in lines:
         if line.startswith(RESULT_MARKER):
             payload = json.loads(line[len(RESULT_MARKER):])
     if payload is None:

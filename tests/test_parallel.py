@@ -1,0 +1,199 @@
+"""maniskill_torchrl.parallel.ParallelEnv: same data as TorchRL's ParallelEnv, sleeping wait,
+batch-scheduled workers, errors instead of hangs (a dead worker, fork after a SAPIEN renderer).
+
+The toy envs here are plain torch (no ManiSkill); workers start with "spawn" (the pytest process
+may hold a SAPIEN renderer from other tests, and then fork is unsafe). One ManiSkill test checks
+the real worker env against an in-process SerialEnv of the same envs.
+"""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.data import Bounded, Composite, Unbounded
+from torchrl.envs import EnvBase, SerialEnv, TransformedEnv
+from torchrl.envs import ParallelEnv as TorchRLParallelEnv
+
+from maniskill_torchrl import _mp
+from maniskill_torchrl.parallel import ParallelEnv, set_batch_policy, usable_cores
+
+STEPS = 12
+
+
+class SeededToy(EnvBase):
+    """Unbatched env with seeded random observations and rewards; episodes of 5 steps.
+
+    ``crash_at``: the worker process exits (code 3) at that step, as a crashing simulator would.
+    """
+
+    def __init__(self, crash_at: int | None = None) -> None:
+        super().__init__()
+        self.observation_spec = Composite(observation=Unbounded((3,)), count=Unbounded((), dtype=torch.int64))
+        self.action_spec = Bounded(-1.0, 1.0, (2,))
+        self.reward_spec = Unbounded((1,))
+        self.crash_at = crash_at
+        self.gen = torch.Generator().manual_seed(0)
+        self.t = 0
+
+    def _obs(self) -> TensorDict:
+        return TensorDict(observation=torch.rand(3, generator=self.gen), count=torch.tensor(self.t))
+
+    def _reset(self, tensordict):
+        self.t = 0
+        return self._obs()
+
+    def _step(self, tensordict):
+        self.t += 1
+        if self.crash_at is not None and self.t >= self.crash_at:
+            os._exit(3)
+        out = self._obs()
+        out["observation"] += tensordict["action"].sum()
+        out["reward"] = torch.rand(1, generator=self.gen)
+        done = torch.tensor([self.t >= 5])
+        out["done"] = out["terminated"] = done
+        return out
+
+    def _set_seed(self, seed: int | None) -> None:
+        self.gen.manual_seed(0 if seed is None else seed)
+
+
+def crashing_toy() -> SeededToy:
+    return SeededToy(crash_at=3)
+
+
+def run(env, steps: int = STEPS, seed: int = 3) -> TensorDict:
+    """Seeded steps as a collector makes them (``step_and_maybe_reset``), with fixed actions."""
+    env.set_seed(seed)
+    td = env.reset()
+    g = torch.Generator().manual_seed(1)
+    out = []
+    for _ in range(steps):
+        td.set("action", torch.rand(env.batch_size + (2,), generator=g) * 2 - 1)
+        step, td = env.step_and_maybe_reset(td)
+        out.append(step.clone())
+    return torch.stack(out, -1)
+
+
+@pytest.fixture(scope="module")
+def torchrl_rollout() -> TensorDict:
+    """The reference: TorchRL's own ParallelEnv (spin wait), seeded."""
+    ref_env = TorchRLParallelEnv(2, SeededToy, mp_start_method="spawn")
+    try:
+        return run(ref_env)
+    finally:
+        ref_env.close()
+
+
+@pytest.mark.parametrize("wait", ["sleep", "spin"])
+def test_same_rollout_as_torchrl_parallelenv(torchrl_rollout: TensorDict, wait: str) -> None:
+    env = ParallelEnv(2, SeededToy, wait=wait)
+    try:
+        got = run(env)
+        assert env.wait == wait
+    finally:
+        env.close()
+    ref = torchrl_rollout
+    assert ref["next", "done"].any() and ref["next", "done"].sum() < ref["next", "done"].numel()
+    assert set(ref.keys(True, True)) == set(got.keys(True, True))
+    for key in ref.keys(True, True):
+        torch.testing.assert_close(got[key], ref[key], rtol=0, atol=0, msg=lambda m, k=key: f"{k}: {m}")
+
+
+def test_worker_crash_raises_quickly() -> None:
+    env = ParallelEnv(2, crashing_toy, wait="sleep")
+    t0 = time.perf_counter()
+    with pytest.raises(RuntimeError, match="dead"):
+        run(env, steps=6)
+    assert time.perf_counter() - t0 < 15
+
+
+def test_wait_and_options() -> None:
+    workers = max(1, usable_cores())
+    assert ParallelEnv(workers, SeededToy).wait == "sleep"  # no core left for the parent
+    env = ParallelEnv(1, SeededToy, wait="spin")
+    assert env.wait == "spin"
+    assert env._mp_start_method == "spawn"
+    with pytest.raises(ValueError, match="wait"):
+        ParallelEnv(2, SeededToy, wait="busy")
+    with pytest.raises(ValueError, match="poll_s"):
+        ParallelEnv(2, SeededToy, poll_s=0)
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_BATCH"), reason="Linux scheduling policy")
+def test_workers_run_as_batch_threads() -> None:
+    env = ParallelEnv(1, SeededToy)
+    try:
+        env.reset()
+        pid = env._workers[0].pid
+        for tid in os.listdir(f"/proc/{pid}/task"):
+            assert os.sched_getscheduler(int(tid)) == os.SCHED_BATCH
+    finally:
+        env.close()
+    assert not set_batch_policy(2**22 + 12345)  # no such process: nothing to do, no error
+
+
+def test_fork_after_renderer_is_refused(monkeypatch) -> None:
+    """mp_start_method="fork" in a process holding a SAPIEN renderer: an error at start, not a hang."""
+    monkeypatch.setattr(_mp, "vulkan_loaded", lambda: True)
+    env = ParallelEnv(2, SeededToy, mp_start_method="fork")
+    with pytest.raises(RuntimeError, match="SAPIEN renderer"):
+        env.reset()
+
+
+def test_vulkan_loaded_after_a_maniskill_env() -> None:
+    """The detection the fork guard relies on: building a ManiSkill env loads the Vulkan loader."""
+    import gymnasium as gym
+
+    env = gym.make("PickCube-v1", num_envs=1, obs_mode="state")
+    env.close()
+    assert _mp.vulkan_loaded()
+
+
+def test_prefer_spawn_only_when_unset() -> None:
+    code = (
+        "import multiprocessing as mp\n"
+        "from maniskill_torchrl._mp import prefer_spawn\n"
+        "print(prefer_spawn(), end=' ')\n"
+        "mp.set_start_method('forkserver', force=True)\n"
+        "print(prefer_spawn())\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
+    assert out.stdout.split() == ["spawn", "forkserver"]
+
+
+def _maniskill_worker():
+    from maniskill_torchrl import CPUUnbatch, ManiSkillEnv
+
+    return TransformedEnv(ManiSkillEnv("PickCube-v1", obs_mode="state", max_episode_steps=5), CPUUnbatch())
+
+
+def test_maniskill_workers_match_serial_env() -> None:
+    """Two ManiSkill workers give what the same two envs give in-process (SerialEnv), bit for bit."""
+    env = ParallelEnv(2, _maniskill_worker)
+    ref_env = SerialEnv(2, _maniskill_worker)
+    try:
+        got = run_maniskill(env)
+        ref = run_maniskill(ref_env)
+    finally:
+        env.close()
+        ref_env.close()
+    assert got["next", "done"].any()
+    for key in ref.keys(True, True):
+        torch.testing.assert_close(got[key], ref[key], rtol=0, atol=0, msg=lambda m, k=key: f"{k}: {m}")
+
+
+def run_maniskill(env, steps: int = 8) -> TensorDict:
+    env.set_seed(5)
+    td = env.reset()
+    g = torch.Generator().manual_seed(2)
+    out = []
+    for _ in range(steps):
+        td.set("action", torch.rand(env.batch_size + (8,), generator=g) * 2 - 1)
+        step, td = env.step_and_maybe_reset(td)
+        out.append(step.clone())
+    return torch.stack(out, -1)
