@@ -22,7 +22,11 @@ Task PickCube-v1, ``obs_mode="state"``, random actions, ``max_episode_steps=50``
   ``t1`` (``torch.set_num_threads(1)`` in the main process before building the env),
   ``nobuf`` (``use_buffers=False``), ``mp=<method>`` (``mp_start_method``),
   ``lib`` (:class:`maniskill_torchrl.parallel.ParallelEnv`, the library's settings),
-  ``wait=<spin|sleep>`` (that class with the given wait strategy).
+  ``wait=<spin|sleep>`` (that class with the given wait strategy), ``nobatch`` (that class
+  without ``SCHED_BATCH`` workers);
+- ``multisync``: ``Collector(make_env, backend="process", num_collectors=N)`` (TorchRL's
+  ``MultiSyncCollector``: one single env and one collector per process, data gathered per
+  batch instead of per step), the same worker env as ``parallel``.
 
 Frames are agent steps (the collector's frames; gym: N per ``step``). Each run is a fresh
 Python process (this script with ``--child``) that builds the pipeline, warms up untimed
@@ -31,17 +35,22 @@ counting whole batches. Rounds alternate (round ``r`` runs every pipeline once, 
 rotating order, :func:`common.alternate_processes`); medians over rounds are reported, with
 ratios to the gym path at the same N and repeat. The child also records its own CPU time
 and its workers' (``main cpu``: cores the main process keeps busy; ``workers cpu``: cores
-its worker processes keep busy, summed).
+its worker processes keep busy, summed) and the cores other processes of the machine kept
+busy meanwhile (``others``). On a shared machine each run waits for the cores to be quiet
+first (``--max-busy``, ``--max-wait``), and a run disturbed by other jobs (``others`` above
+``--max-others``) is run again (``--retries``).
 
-Run: ``python benchmarks/bench_collection.py [--n 1 2 4] [--repeat 1 2] [--rounds 3]
-[--seconds 4] [--pipelines gym batched parallel parallel:lib] [--out results.json]``.
-The default run takes about 10 minutes on 2 cores.
+Run: ``python benchmarks/bench_collection.py [--n 1 2 4] [--repeat 1 2] [--rounds 2]
+[--seconds 2.5] [--pipelines gym batched parallel parallel:lib] [--out results.json]``.
+The default run (4 pipelines x 6 cells x 2 rounds, ~17 s per run, mostly start-up: every
+process imports torch, TorchRL and ManiSkill) takes about 14 minutes on 2 idle cores;
+``--n 2`` about 5.
 """
 from __future__ import annotations
 
 import argparse
-import json
 import os
+import signal
 import statistics
 import sys
 import time
@@ -103,7 +112,7 @@ def _worker_env(repeat: int):
 
 
 class _CPUMeter:
-    """This process's CPU time and that of its live descendants (the worker processes)."""
+    """CPU time of this process, of its live descendants (the worker processes), and of the machine."""
 
     def __init__(self) -> None:
         import psutil
@@ -120,14 +129,37 @@ class _CPUMeter:
                 pass
         return out
 
-    def snapshot(self) -> tuple[float, dict[int, float]]:
-        return time.process_time(), self.workers()
+    def snapshot(self) -> tuple:
+        return time.process_time(), self.workers(), _machine_jiffies(), time.perf_counter()
 
     @staticmethod
-    def delta(a, b) -> tuple[float, float]:
+    def delta(a, b) -> tuple[float, float, float | None]:
+        """(main CPU s, workers CPU s, cores kept busy by other processes meanwhile, or None)."""
         main = b[0] - a[0]
         workers = sum(t - a[1].get(pid, 0.0) for pid, t in b[1].items())
-        return main, workers
+        others = None
+        if a[2] is not None and b[2] is not None:
+            busy_s = (b[2][0] - a[2][0]) / os.sysconf("SC_CLK_TCK")
+            others = max(0.0, (busy_s - main - workers) / (b[3] - a[3]))
+        return main, workers, others
+
+
+def _machine_jiffies() -> tuple[int, int] | None:
+    """Busy and total jiffies of all cores (Linux /proc/stat), or None."""
+    try:
+        with open("/proc/stat") as f:
+            v = [int(x) for x in f.readline().split()[1:9]]
+    except (OSError, ValueError):
+        return None
+    return sum(v) - v[3] - v[4], sum(v)
+
+
+def _measured(frames: int, wall: float, a, b) -> dict:
+    main_cpu, workers_cpu, others = _CPUMeter.delta(a, b)
+    out = {"units": frames, "wall_s": wall, "cpu_s": main_cpu, "workers_cpu_s": workers_cpu}
+    if others is not None:
+        out["others_cores"] = round(others, 3)
+    return out
 
 
 def _parse_options(spec: str) -> tuple[str, dict[str, str]]:
@@ -152,8 +184,7 @@ def _time_collector(collector, seconds: float, meter: _CPUMeter) -> dict:
         if wall >= seconds:
             break
     b = meter.snapshot()
-    main_cpu, workers_cpu = meter.delta(a, b)
-    return {"units": frames, "wall_s": wall, "cpu_s": main_cpu, "workers_cpu_s": workers_cpu}
+    return _measured(frames, wall, a, b)
 
 
 def child_gym(n: int, repeat: int, seconds: float, opts: dict) -> dict:
@@ -179,8 +210,7 @@ def child_gym(n: int, repeat: int, seconds: float, opts: dict) -> dict:
         if wall >= seconds:
             break
     b = meter.snapshot()
-    main_cpu, workers_cpu = meter.delta(a, b)
-    return {"units": frames, "wall_s": wall, "cpu_s": main_cpu, "workers_cpu_s": workers_cpu}
+    return _measured(frames, wall, a, b)
 
 
 def child_batched(n: int, repeat: int, seconds: float, opts: dict) -> dict:
@@ -218,17 +248,20 @@ def child_parallel(n: int, repeat: int, seconds: float, opts: dict) -> dict:
         kwargs["use_buffers"] = False
     if "mp" in opts:
         kwargs["mp_start_method"] = opts["mp"]
-    if "lib" in opts or "wait" in opts:
+    if "lib" in opts or "wait" in opts or "nobatch" in opts:
         from maniskill_torchrl.parallel import ParallelEnv
 
         if "wait" in opts:
             kwargs["wait"] = opts["wait"]
     else:
         from torchrl.envs import ParallelEnv
+    if "nobatch" in opts:
+        kwargs["batch_workers"] = False
     meter = _CPUMeter()
-    # A partial, not a lambda, only so that the option-free case matches either way: TorchRL
-    # pickles both with cloudpickle.
-    env = ParallelEnv(n, functools.partial(_worker_env, repeat), **kwargs)
+    if opts:
+        env = ParallelEnv(n, functools.partial(_worker_env, repeat), **kwargs)
+    else:  # as users write it: a lambda (TorchRL wraps it in an EnvCreator, which builds one env here)
+        env = ParallelEnv(n, lambda: _worker_env(repeat))
     env.set_seed(SEED)
     collector = Collector(env, policy=None, frames_per_batch=EPISODE * n, total_frames=-1)
     out = _time_collector(collector, seconds, meter)
@@ -275,8 +308,8 @@ def cell_name(spec: str, n: int, repeat: int) -> str:
 
 def fmt_table(results: dict, specs: list[str], ns: list[int], repeats: list[int]) -> str:
     rows = [
-        "| pipeline | N | repeat | frames/s (median) | min-max | ratio to gym | main cpu | workers cpu | rounds |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| pipeline | N | repeat | frames/s (median) | min-max | ratio to gym | main cpu | workers cpu | others | rounds |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     notes = []
     for repeat in repeats:
@@ -286,7 +319,7 @@ def fmt_table(results: dict, specs: list[str], ns: list[int], repeats: list[int]
             for spec in specs:
                 res = results[cell_name(spec, n, repeat)]
                 if not res.ok:
-                    rows.append(f"| {spec} | {n} | {repeat} | - | - | - | - | - | 0 |")
+                    rows.append(f"| {spec} | {n} | {repeat} | - | - | - | - | - | - | 0 |")
                     if res.note:
                         notes.append(f"- {spec} N={n} repeat={repeat}: {res.note.splitlines()[0][:300]}")
                     continue
@@ -295,10 +328,12 @@ def fmt_table(results: dict, specs: list[str], ns: list[int], repeats: list[int]
                 wall = [u * p for u, p in zip(res.units, res.per_unit_wall)]
                 main = statistics.median(u * p / w for u, p, w in zip(res.units, res.per_unit_cpu, wall))
                 workers = statistics.median(e.get("workers_cpu_s", 0.0) / w for e, w in zip(res.extra, wall))
+                others = [e["others_cores"] for e in res.extra if "others_cores" in e]
+                others_s = f"{statistics.median(others):.2f}" if others else "-"
                 ratio = f"{fps / base_fps:.2f}x" if base_fps else "-"
                 rows.append(
                     f"| {spec} | {n} | {repeat} | {fps:.0f} | {lo:.0f}-{hi:.0f} | {ratio} | "
-                    f"{main:.2f} | {workers:.2f} | {len(res.per_unit)} |"
+                    f"{main:.2f} | {workers:.2f} | {others_s} | {len(res.per_unit)} |"
                 )
     return "\n".join(rows + ([""] + notes if notes else []))
 
@@ -317,6 +352,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="before each run, wait until other processes use fewer cores than this (default 0.3)")
     p.add_argument("--max-wait", type=float, default=60.0,
                    help="longest wait for that, in seconds; 0 turns the wait off (default 60)")
+    p.add_argument("--max-others", type=float, default=0.25,
+                   help="a run during which other processes kept more cores busy than this is run again "
+                        "(default 0.25)")
+    p.add_argument("--retries", type=int, default=2, help="re-runs of a disturbed run (default 2)")
     p.add_argument("-q", "--quiet", action="store_true", help="no per-run lines")
     p.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
@@ -325,6 +364,8 @@ def main(argv: list[str] | None = None) -> int:
         run_child(args.child, args.n[0], args.repeat[0], args.seconds)
         return 0
 
+    # A TERM (timeout, kill) ends the run in progress with its workers (common._run_child's cleanup).
+    signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt()))
     specs = list(dict.fromkeys(args.pipelines))
     if "gym" not in specs:
         specs.insert(0, "gym")
@@ -342,7 +383,9 @@ def main(argv: list[str] | None = None) -> int:
     ]
     results = alternate_processes(contenders, rounds=args.rounds, timeout=args.timeout,
                                   cwd=os.path.dirname(HERE), verbose=not args.quiet,
-                                  quiet=(args.max_busy, args.max_wait) if args.max_wait > 0 else None)
+                                  quiet=(args.max_busy, args.max_wait) if args.max_wait > 0 else None,
+                                  accept=lambda r: r.get("others_cores", 0.0) <= args.max_others,
+                                  retries=args.retries)
     took = time.perf_counter() - t0
     table = fmt_table(results, specs, args.n, args.repeat)
     print(f"\nPickCube-v1 state, random actions, episodes of {EPISODE} steps; frames = agent steps; "

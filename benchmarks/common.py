@@ -460,6 +460,8 @@ def alternate_processes(
     cwd: str | None = None,
     verbose: bool = False,
     quiet: tuple[float, float] | None = None,
+    accept: Callable[[dict], bool] | None = None,
+    retries: int = 0,
     on_result: Callable[[str, int, dict | None], None] | None = None,
 ) -> dict[str, ProcessResult]:
     """Runs each contender ``rounds`` times, each run a fresh child process, rounds alternating.
@@ -470,7 +472,9 @@ def alternate_processes(
     reports ``skipped`` is not run again (its reason goes to ``note``); one that fails or times out
     (its whole process group is killed) counts in ``failures`` and is retried next round.
     ``quiet=(max_busy, max_wait)`` waits for :func:`wait_for_quiet` before each child and keeps
-    the reading in the round's extras as ``busy_before``.
+    the reading in the round's extras as ``busy_before``. A result that ``accept(payload)``
+    rejects (say, other jobs took cores during the timed window) is run again, up to ``retries``
+    more times; the last try is kept either way, with the number of rejected tries in ``rejected``.
     """
     if clock not in ("wall", "cpu"):
         raise ValueError(f"clock must be 'wall' or 'cpu', got {clock!r}.")
@@ -484,10 +488,19 @@ def alternate_processes(
             res = results[c.name]
             if res.note is not None and res.note.startswith("skipped"):
                 continue
-            busy = wait_for_quiet(*quiet, verbose=verbose) if quiet is not None else None
-            t0 = time.perf_counter()
-            payload, log = _run_child(c, timeout, cwd)
-            took = time.perf_counter() - t0
+            rejected = 0
+            while True:
+                busy = wait_for_quiet(*quiet, verbose=verbose) if quiet is not None else None
+                t0 = time.perf_counter()
+                payload, log = _run_child(c, timeout, cwd)
+                took = time.perf_counter() - t0
+                if (payload is None or payload.get("skipped") or accept is None or accept(payload)
+                        or rejected >= retries):
+                    break
+                rejected += 1
+                if verbose:
+                    print(f"  round {r}: {c.name:<34} rejected ({payload.get('units', 0) / payload.get('wall_s', 1):.1f} "
+                          f"units/s; {payload}), running it again", flush=True)
             if on_result is not None:
                 on_result(c.name, r, payload)
             if payload is None:
@@ -509,6 +522,8 @@ def alternate_processes(
             extra = {k: v for k, v in payload.items() if k not in ("units", "wall_s", "cpu_s", "skipped")}
             if busy is not None:
                 extra["busy_before"] = round(busy, 3)
+            if accept is not None:
+                extra["rejected"] = rejected
             res.extra.append(extra)
             if verbose:
                 print(f"  round {r}: {c.name:<34} {units / wall:8.1f} units/s ({units} in {wall:.2f} s; "
