@@ -14,7 +14,14 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
+from maniskill_torchrl._mp import prefer_spawn
+
 __version__ = "0.1.0"
+
+# As ``import torchrl`` does: without it, the first process any library starts (gymnasium's
+# AsyncVectorEnv, say) pins "fork", and a TorchRL ParallelEnv built later in this process forks
+# a parent holding a SAPIEN renderer and hangs (see maniskill_torchrl/_mp.py).
+prefer_spawn()
 
 _EXPORTS = {
     "ManiSkillEnv": "maniskill_torchrl.env",
