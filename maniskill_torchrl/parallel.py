@@ -1,33 +1,42 @@
 """``ParallelEnv`` of single CPU ManiSkill envs, with the settings that keep the cores for the workers.
 
-:class:`ParallelEnv` is TorchRL's :class:`torchrl.envs.ParallelEnv` with three changes, each
+:class:`ParallelEnv` is TorchRL's :class:`torchrl.envs.ParallelEnv` with four changes, each
 found by profiling ``Collector(ParallelEnv(N, ManiSkillEnv + CPUUnbatch))`` on 2 cores
-(``benchmarks/bench_collection.py``; ``benchmarks/RESULTS.md`` has the figures):
+(``benchmarks/bench_collection.py``; ``benchmarks/RESULTS.md`` has the figures). Together
+they took ``Collector(ParallelEnv(2, ...))`` from 0.44x to 0.64x of the frames/s of
+gymnasium's ``AsyncVectorEnv`` of ManiSkill's ``CPUGymWrapper`` there; the rest of the gap is
+TorchRL's per-step work in the collector, the ``ParallelEnv`` and the worker (~2 ms per
+step against ~0.6 ms for gymnasium, on the critical path of every synchronous step), which no
+setting removes. For speed, prefer the batched env ``ManiSkillEnv(id, num_envs=N)`` or
+``Collector(make_env, backend="process", num_collectors=N)``.
 
 1. **Waiting for the workers sleeps instead of spinning.** TorchRL 0.14 waits for a step's
    results by spin-polling one shared-memory flag per worker
-   (``ParallelEnv._wait_for_workers``), which keeps a whole core busy for the entire step.
-   With as many workers as cores, that core is taken from the workers (one ManiSkill step is
-   ~2 ms of CPU), so a ``ParallelEnv(2)`` on 2 cores collected at ~0.4x the speed of
-   gymnasium's ``AsyncVectorEnv``, which blocks in ``recv``. Here the parent polls the same
-   flags with short sleeps (``poll_s``), after a first sleep of most of the shortest recent wait.
-   ``wait="auto"`` (default) sleeps when the workers have no core to spare (fewer usable
-   cores than workers + 1) and keeps TorchRL's spin otherwise; ``"sleep"`` / ``"spin"`` force
-   one. Only the shared-buffer path (``use_buffers=True``, TorchRL's default) spins; the
-   ``use_buffers=False`` path already blocks on the pipes and is left as it is.
-2. **The start method defaults to ``"spawn"``**, whatever ``multiprocessing``'s global start
+   (``ParallelEnv._wait_for_workers``), which keeps a whole core busy for the entire step;
+   with as many workers as cores that core is taken from the workers. Here the parent polls
+   the same flags with short sleeps (``poll_s``), after a first sleep of 80% of the shortest
+   recent wait, and checks every 50 ms that the workers are alive. ``wait="auto"`` (default)
+   sleeps when the workers leave the parent no core (fewer usable cores than workers + 1) and
+   keeps TorchRL's spin otherwise; ``"sleep"`` / ``"spin"`` force one. Only the shared-buffer
+   path (``use_buffers=True``, TorchRL's default) spins; the ``use_buffers=False`` path
+   blocks on the pipes already and is left as it is.
+2. **Workers run under Linux's ``SCHED_BATCH`` policy** (``batch_workers=True``, see
+   :func:`set_batch_policy`): a woken worker no longer preempts the parent before it has sent
+   the step command to every worker (2.4 ms -> 0.2 ms per step to send two commands).
+3. **The start method defaults to ``"spawn"``**, whatever ``multiprocessing``'s global start
    method says, unless ``mp_start_method`` is given. Python pins that global to ``"fork"`` the
    first time any process starts (gymnasium's ``AsyncVectorEnv(context="forkserver")``
    does), and ManiSkill workers forked from a parent that has built a ManiSkill env hang
    forever (see :mod:`maniskill_torchrl._mp`).
-3. **Forking a parent that holds a SAPIEN renderer fails at once** with a ``RuntimeError``
+4. **Forking a parent that holds a SAPIEN renderer fails at once** with a ``RuntimeError``
    that says what to do, instead of hanging (``mp_start_method="fork"`` after a ManiSkill env
    was built in this process).
 
 Everything else (specs, seeding, ``"_reset"`` / ``"_step"`` masks, collectors, ``close``) is
-TorchRL's. Private TorchRL names used, all of ``torchrl.envs.ParallelEnv`` 0.14:
-``_wait_for_workers`` (overridden), ``_start_workers`` (wrapped), and the attributes
-``_use_buffers``, ``_shm_done_flags``, ``_worker_indices``, ``_workers``, ``_mp_start_method``,
+TorchRL's: the data are the same as ``torchrl.envs.ParallelEnv``'s, bit for bit. Private
+TorchRL names used, all of ``torchrl.envs.ParallelEnv`` 0.14: ``_wait_for_workers``
+(overridden), ``_start_workers`` (wrapped), and the attributes ``_use_buffers``,
+``_shm_done_flags``, ``_worker_indices``, ``_workers``, ``_mp_start_method``,
 ``BATCHED_PIPE_TIMEOUT`` and ``_shutdown_workers`` (read / called as TorchRL's own wait does).
 
 Examples:
@@ -104,6 +113,8 @@ def usable_cores() -> int:
 class ParallelEnv(_TorchRLParallelEnv):
     """TorchRL's ``ParallelEnv`` whose parent sleeps while its workers step (see the module docstring).
 
+    The output of every step is the same as ``torchrl.envs.ParallelEnv``'s.
+
     Args:
         num_workers (int): worker processes, one env each.
         create_env_fn (callable or list of callables): builds one worker's env.
@@ -114,6 +125,8 @@ class ParallelEnv(_TorchRLParallelEnv):
             else ``"spin"``), ``"sleep"`` or ``"spin"`` (TorchRL's wait).
         poll_s (float): the sleep between two polls of the workers' done flags, in seconds
             (default 100 us; Linux adds its ~50 us timer slack).
+        batch_workers (bool): put the worker processes under ``SCHED_BATCH`` once started
+            (default ``True``; a no-op where the OS has no such policy).
         mp_start_method (str, optional): ``"spawn"`` when not given (TorchRL's documented
             default, kept even if ``multiprocessing``'s global method is ``"fork"``).
             ``"fork"`` raises ``RuntimeError`` at start if this process has built a ManiSkill env.
