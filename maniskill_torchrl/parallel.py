@@ -20,9 +20,11 @@ setting removes. For speed, prefer the batched env ``ManiSkillEnv(id, num_envs=N
    keeps TorchRL's spin otherwise; ``"sleep"`` / ``"spin"`` force one. Only the shared-buffer
    path (``use_buffers=True``, TorchRL's default) spins; the ``use_buffers=False`` path
    blocks on the pipes already and is left as it is.
-2. **Workers run under Linux's ``SCHED_BATCH`` policy** (``batch_workers=True``, see
-   :func:`set_batch_policy`): a woken worker no longer preempts the parent before it has sent
-   the step command to every worker (2.4 ms -> 0.2 ms per step to send two commands).
+2. **Workers run under Linux's ``SCHED_BATCH`` policy** when the parent sleeps
+   (``batch_workers``, see :func:`set_batch_policy`): a woken worker no longer preempts the
+   parent before it has sent the step command to every worker (2.4 ms -> 0.2 ms per step to
+   send two commands). Not with a spinning parent: a woken batch worker placed on its core
+   would wait for it.
 3. **The start method defaults to ``"spawn"``**, whatever ``multiprocessing``'s global start
    method says, unless ``mp_start_method`` is given. Python pins that global to ``"fork"`` the
    first time any process starts (gymnasium's ``AsyncVectorEnv(context="forkserver")``
@@ -125,8 +127,9 @@ class ParallelEnv(_TorchRLParallelEnv):
             else ``"spin"``), ``"sleep"`` or ``"spin"`` (TorchRL's wait).
         poll_s (float): the sleep between two polls of the workers' done flags, in seconds
             (default 100 us; Linux adds its ~50 us timer slack).
-        batch_workers (bool): put the worker processes under ``SCHED_BATCH`` once started
-            (default ``True``; a no-op where the OS has no such policy).
+        batch_workers (bool, optional): put the worker processes under ``SCHED_BATCH`` once
+            started (a no-op where the OS has no such policy). Default: when the parent sleeps
+            (with a spinning parent a woken batch worker could wait behind it).
         mp_start_method (str, optional): ``"spawn"`` when not given (TorchRL's documented
             default, kept even if ``multiprocessing``'s global method is ``"fork"``).
             ``"fork"`` raises ``RuntimeError`` at start if this process has built a ManiSkill env.
@@ -142,7 +145,7 @@ class ParallelEnv(_TorchRLParallelEnv):
         create_env_kwargs: dict | Sequence[dict] | None = None,
         wait: WaitMode = "auto",
         poll_s: float = 1e-4,
-        batch_workers: bool = True,
+        batch_workers: bool | None = None,
         mp_start_method: str | None = None,
         **kwargs: Any,
     ) -> None:
@@ -154,7 +157,9 @@ class ParallelEnv(_TorchRLParallelEnv):
         self._wait_mode: WaitMode = wait
         self._sleeps = wait == "sleep" or (wait == "auto" and usable_cores() < num_workers + 1)
         self._poll_s = float(poll_s)
-        self._batch_workers = bool(batch_workers)
+        # Batch workers only help a parent that sleeps: a spinning parent on the workers' core
+        # would keep a woken batch worker waiting (it no longer preempts the spinner).
+        self._batch_workers = self._sleeps if batch_workers is None else bool(batch_workers)
         self._recent_waits: deque[float] = deque(maxlen=_RECENT)
         super().__init__(
             num_workers,

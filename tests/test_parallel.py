@@ -126,7 +126,8 @@ def test_wait_and_options() -> None:
 
 @pytest.mark.skipif(not hasattr(os, "SCHED_BATCH"), reason="Linux scheduling policy")
 def test_workers_run_as_batch_threads() -> None:
-    env = ParallelEnv(1, SeededToy)
+    assert not ParallelEnv(1, SeededToy, wait="spin")._batch_workers  # only with a sleeping parent
+    env = ParallelEnv(1, SeededToy, wait="sleep")
     try:
         env.reset()
         pid = env._workers[0].pid
