@@ -52,12 +52,14 @@ from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
 from torchrl.envs import Compose, EnvBase, ParallelEnv, SerialEnv, TransformedEnv
-from torchrl.envs.utils import ExplorationType
+from torchrl.envs.utils import ExplorationType, RandomPolicy, set_exploration_type
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
-from maniskill_torchrl import ActionRepeat, CPUUnbatch, EpisodeMetrics, ManiSkillEnv
+from maniskill_torchrl import ActionRepeat, CPUUnbatch, EpisodeMetrics, IgnoreTerminations, ManiSkillEnv
+
+CHECKPOINT_FORMAT = "maniskill_torchrl.ppo.v1"
 
 warnings.filterwarnings("ignore", message=".*precision lowered by casting.*")
 
@@ -79,11 +81,16 @@ def make_cpu_env(env_id: str, repeat: int, env_kwargs: dict[str, Any]) -> EnvBas
     )
 
 
-def make_env(args: argparse.Namespace, device: torch.device) -> EnvBase:
-    """The training env: batch ``[num_envs]`` on ``device``."""
+def _env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     env_kwargs: dict[str, Any] = {"obs_mode": "state", "control_mode": args.control_mode}
     if args.max_episode_steps is not None:
         env_kwargs["max_episode_steps"] = args.max_episode_steps
+    return env_kwargs
+
+
+def make_env(args: argparse.Namespace, device: torch.device) -> EnvBase:
+    """The training env: batch ``[num_envs]`` on ``device``."""
+    env_kwargs = _env_kwargs(args)
     if args.vec == "batched":
         # A batched TorchRL env on either sim (one GPU simulator, or one CPU worker per env): no CPUUnbatch.
         transforms = []
@@ -97,6 +104,60 @@ def make_env(args: argparse.Namespace, device: torch.device) -> EnvBase:
     if args.vec == "serial":
         return SerialEnv(args.num_envs, make)
     return ParallelEnv(args.num_envs, make, mp_start_method="spawn")
+
+
+def _time_limit(args: argparse.Namespace) -> int:
+    """The task's episode length: --max-episode-steps, else the registered time limit."""
+    if args.max_episode_steps is not None:
+        return args.max_episode_steps
+    import gymnasium as gym
+    import mani_skill.envs  # noqa: F401  (registers the tasks)
+
+    limit = gym.spec(args.env_id).max_episode_steps
+    if limit is None:
+        raise SystemExit(f"{args.env_id} has no registered time limit: pass --max-episode-steps to evaluate it")
+    return limit
+
+
+def make_eval_env(env_id: str, num_envs: int, device: torch.device, repeat: int = 1, **env_kwargs: Any) -> EnvBase:
+    """The evaluation env, as ManiSkill's PPO baseline evaluates: episodes run to the time limit
+    (``IgnoreTerminations``), ``EpisodeMetrics`` reports success_once / success_at_end / return."""
+    transforms: list = [IgnoreTerminations()]
+    if repeat > 1:
+        transforms.append(ActionRepeat(repeat))
+    transforms.append(EpisodeMetrics())
+    backend = "gpu" if device.type == "cuda" else "physx_cpu"
+    base = ManiSkillEnv(env_id, num_envs=num_envs, sim_backend=backend, **env_kwargs)
+    return TransformedEnv(base, Compose(*transforms))
+
+
+@torch.no_grad()
+def evaluate_policy(env: EnvBase, policy: Any, episodes: int, seed: int, max_steps: int) -> dict[str, float]:
+    """Runs ``episodes`` full episodes, seeded ``seed``, ``seed + 1``, ...; the policy acts
+    deterministically (the TanhNormal's mode). ``policy=None``: uniform random actions.
+
+    Returns the means of ``success_once``, ``success_at_end`` and ``return`` (and ``episodes``).
+    ``max_steps``: agent steps per episode (the time limit divided by any ActionRepeat)."""
+    n = env.batch_size.numel()
+    acting = RandomPolicy(env.full_action_spec) if policy is None else policy
+    finished = []
+    for first in range(0, episodes, n):
+        env.set_seed(seed + first)  # sub-env i starts with seed + first + i
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            rollout = env.rollout(max_steps, acting, break_when_any_done=False)
+        done = rollout.get(("next", "done")).squeeze(-1)
+        if not bool(done[..., -1].all()):
+            raise RuntimeError(
+                f"evaluation episodes did not end after {max_steps} steps: pass the task's time limit "
+                "(--max-episode-steps) divided by the ActionRepeat"
+            )
+        finished.append(rollout.get(("next", "episode"))[..., -1])
+    ep = torch.cat(finished)[:episodes]
+    out = {"episodes": float(ep.batch_size[0])}
+    for key in ("success_once", "success_at_end", "return"):
+        if key in ep.keys():
+            out[key] = ep.get(key).float().mean().item()
+    return out
 
 
 # --------------------------------------------------------------------------- models
@@ -209,9 +270,27 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
 
     log_path = out / "metrics.jsonl"
     log_path.write_text("")
+    eval_env = None
+    if args.eval_every > 0:
+        eval_env = make_eval_env(args.env_id, args.eval_envs, device, args.repeat, **_env_kwargs(args))
+        eval_steps = _time_limit(args) // args.repeat
+
+        def log_eval(frames: int, train_s: float, which: str, acting: Any) -> None:
+            t = time.perf_counter()
+            res = evaluate_policy(eval_env, acting, args.eval_episodes, args.eval_seed, eval_steps)
+            rec = {"eval": which, "frames": frames, "train_s": round(train_s, 1),
+                   "eval_s": round(time.perf_counter() - t, 1), **res}
+            with log_path.open("a") as f:
+                f.write(json.dumps(rec) + "\n")
+            print(f"eval ({which}) at {frames} frames: " + ", ".join(
+                f"{k} {v:.3f}" for k, v in res.items() if k != "episodes"), flush=True)
+
+        log_eval(0, 0.0, "random", None)
+        log_eval(0, 0.0, "policy", policy)
     frames = 0
     record: dict[str, Any] = {}
     t0 = time.perf_counter()
+    eval_s = 0.0  # wall time spent evaluating, not counted as training time
     for it, batch in enumerate(collector, 1):
         frames += batch.numel()
         record = {"iteration": it, "frames": frames, **episode_stats(batch)}
@@ -235,18 +314,34 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
         record.update(
             loss_objective=losses["loss_objective"].item(),
             loss_critic=losses["loss_critic"].item(),
-            frames_per_s=round(frames / (time.perf_counter() - t0), 1),
+            frames_per_s=round(frames / (time.perf_counter() - t0 - eval_s), 1),
+            train_s=round(time.perf_counter() - t0 - eval_s, 1),
         )
         with log_path.open("a") as f:
             f.write(json.dumps(record) + "\n")
         print(_format(record), flush=True)
+        if eval_env is not None and (frames // args.eval_every > (frames - batch.numel()) // args.eval_every
+                                     or it == iterations):
+            t = time.perf_counter()
+            log_eval(frames, record["train_s"], "policy", policy)
+            eval_s += time.perf_counter() - t
     collector.shutdown()
     if not env.is_closed:
         env.close()
+    if eval_env is not None:
+        eval_env.close()
 
     ckpt = out / "ppo_checkpoint.pt"
     torch.save(
         {
+            "format": CHECKPOINT_FORMAT,
+            "env_id": args.env_id,
+            "obs_mode": "state",
+            "control_mode": args.control_mode,
+            "obs_dim": env.observation_spec["observation"].shape[-1],
+            "act_dim": env.action_spec_unbatched.shape[-1],
+            "hidden": args.hidden,
+            "repeat": args.repeat,
             "policy": policy.state_dict(),
             "value": value.state_dict(),
             "args": vars(args),
@@ -304,6 +399,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--critic-coeff", type=float, default=0.5)
     p.add_argument("--max-grad-norm", type=float, default=0.5)
     p.add_argument("--threads", type=int, default=1, help="torch threads on the CPU")
+    p.add_argument("--eval-every", type=int, default=None,
+                   help="evaluate every this many frames (0: never); default 0 with --smoke, 20000 on the CPU, "
+                        "200000 on the GPU")
+    p.add_argument("--eval-episodes", type=int, default=50, help="seeded episodes per evaluation")
+    p.add_argument("--eval-envs", type=int, default=None,
+                   help="parallel evaluation envs; default: --eval-episodes on the GPU, 2 on the CPU")
+    p.add_argument("--eval-seed", type=int, default=10_000, help="evaluation episodes use seeds from here")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="outputs/ppo")
     args = p.parse_args(argv)
@@ -327,7 +429,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     for name, value in zip(("num_envs", "num_steps", "total_frames", "epochs", "minibatch_size"), defaults):
         if getattr(args, name) is None:
             setattr(args, name, value)
-    for name in ("num_envs", "num_steps", "total_frames", "epochs", "minibatch_size", "repeat", "hidden", "threads"):
+    if args.eval_every is None:
+        args.eval_every = 0 if args.smoke else (200_000 if gpu else 20_000)
+    if args.eval_envs is None:
+        args.eval_envs = args.eval_episodes if gpu else min(2, args.eval_episodes)
+    for name in ("num_envs", "num_steps", "total_frames", "epochs", "minibatch_size", "repeat", "hidden", "threads",
+                 "eval_episodes", "eval_envs"):
         if getattr(args, name) < 1:
             p.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
     if args.minibatch_size > args.num_envs * args.num_steps:
