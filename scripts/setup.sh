@@ -5,7 +5,7 @@
 #
 # 1. Creates .venv at the repo root (python3 -m venv) if missing.
 # 2. Installs torch==2.13.0 (pinned; the CPU wheel comes from the pip
-#    config's find-links), then `pip install -e ".[test,demo]"`.
+#    config's find-links), then `pip install -e ".[test,demo,distributed]"`.
 #    The installed torch is passed to pip as a constraint, so pip can never
 #    swap it for an unpinned (multi-GB CUDA) torch.
 # 3. Checks that SAPIEN finds a Vulkan device (ManiSkill 3 needs one even for
@@ -31,6 +31,7 @@ PY="$VENV/bin/python"
 STAMP="$VENV/.setup-stamp"
 VULKAN_STAMP="$VENV/.vulkan-ok"
 TORCH_PIN="torch==2.13.0"
+EXTRAS="test,demo,distributed"   # part of the stamp: changing it reinstalls
 
 log() { echo "setup: $*"; }
 # pip, minus the noise about file:// index locations that don't exist here.
@@ -70,8 +71,8 @@ else
     trap 'rm -f "$constraints"' EXIT
     echo "torch==$(torch_version)" >"$constraints"
 
-    log "installing maniskill_torchrl (editable, extras: test, demo)"
-    pip_q install -c "$constraints" -e ".[test,demo]"
+    log "installing maniskill_torchrl (editable, extras: $EXTRAS)"
+    pip_q install -c "$constraints" -e ".[$EXTRAS]"
     echo "$want_hash" >"$STAMP"
     pip_done=1
 fi
