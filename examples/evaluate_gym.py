@@ -285,7 +285,7 @@ def main(argv: list[str] | None = None) -> int:
             args.env_id = ckpt["env_id"]
             if args.control_mode is None:
                 args.control_mode = ckpt["control_mode"]
-            print(f"checkpoint {ckpt['path']}: {ckpt['env_id']}, control mode {ckpt['control_mode']}, "
+            print(f"checkpoint {ckpt['path']}: {ckpt['env_id']}, control mode {args.control_mode}, "
                   f"repeat {ckpt['repeat']}, {ckpt.get('frames', '?')} frames; backend {args.backend}", flush=True)
             if args.backend == "torchrl":
                 res = evaluate_torchrl(args, ckpt)
