@@ -1,0 +1,250 @@
+"""Collection on Ray through TorchRL's own distributed collector, with weight updates.
+
+``Collector(make_env, policy, backend="ray", num_collectors=K, sync=True)`` (TorchRL 0.14;
+it builds a :class:`torchrl.collectors.distributed.RayCollector`) starts ``K`` Ray actors,
+each running a TorchRL ``Collector`` over one env of this library:
+
+- ``--num-envs 1`` (default): ``ManiSkillEnv(env_id, obs_mode="state") -> CPUUnbatch ->
+  EpisodeMetrics``, one CPU-sim env in the actor process;
+- ``--num-envs N``: ``ManiSkillEnv(env_id, num_envs=N) -> EpisodeMetrics``, one batched env
+  (on the CPU sim, N worker processes under the actor: the fast CPU path).
+
+The policy is a small MLP actor (``TensorDictModule``). Between batches its weights are
+changed here (a random perturbation; a learner would take an optimiser step) and pushed to
+every remote collector with ``collector.update_policy_weights_()``. The policy also writes a
+``"policy_version"`` entry, read from a buffer that travels with the weights, so every
+batch shows which weights the remote side used; the script also recomputes the actions of
+each batch locally from the batch's observations and checks that they match.
+
+Usage::
+
+    python examples/distributed_ray.py                       # local Ray, ray.init(num_cpus=2)
+    python examples/distributed_ray.py --collectors 2 --batches 4 --frames-per-batch 200
+    python examples/distributed_ray.py --address auto        # join a running cluster (ray start)
+
+Without ``--address`` a local Ray instance is started with ``ray.init(num_cpus=...)``; with
+``--address auto`` TorchRL calls ``ray.init(address="auto")`` through
+``ray_init_config`` and the actors go wherever the cluster has room. On a cluster every
+node needs this package (and ManiSkill's assets) installed, as Ray ships the env factory
+and the policy by pickle, not the code they import.
+
+A remote collector that crashes (its env factory raises, or its process dies) makes the
+iteration raise a Ray error naming the actor (``ActorDiedError``/``RayTaskError``);
+``--crash`` demonstrates it (tests/test_ray.py checks it under a time limit).
+"""
+from __future__ import annotations
+
+import argparse
+import functools
+import logging
+import os
+import sys
+import time
+import warnings
+
+import torch
+from torch import nn
+
+ENV_ID = "PushCube-v1"
+
+
+def make_env(env_id: str = ENV_ID, num_envs: int = 1, max_episode_steps: int | None = None,
+             crash_after: int | None = None):
+    """The env of one remote collector (runs inside the Ray actor).
+
+    ``crash_after=k`` makes the actor's process exit abruptly (``os._exit``) at its k-th step:
+    a stand-in for a worker that segfaults or is OOM-killed, to show the error it gives."""
+    warnings.filterwarnings("ignore")
+    logging.getLogger("mani_skill").setLevel(logging.ERROR)
+    from torchrl.envs import Compose, TransformedEnv
+
+    from maniskill_torchrl import CPUUnbatch, EpisodeMetrics, ManiSkillEnv
+
+    kwargs = {"obs_mode": "state"}
+    if max_episode_steps is not None:
+        kwargs["max_episode_steps"] = max_episode_steps
+    if num_envs == 1:
+        env = TransformedEnv(ManiSkillEnv(env_id, **kwargs), Compose(CPUUnbatch(), EpisodeMetrics()))
+    else:
+        env = TransformedEnv(ManiSkillEnv(env_id, num_envs=num_envs, **kwargs), EpisodeMetrics())
+    if crash_after is not None:
+        env.append_transform(_CrashAfter(crash_after))
+    return env
+
+
+def failing_env():
+    """An env factory that raises: the remote collector cannot even start."""
+    raise RuntimeError("env factory failed on purpose (failing_env)")
+
+
+class _CrashAfter:  # built lazily: a Transform subclass defined at import would import torchrl early
+    def __new__(cls, steps: int):
+        from torchrl.envs import Transform
+
+        class CrashAfter(Transform):
+            def __init__(self, steps: int) -> None:
+                super().__init__()
+                self.left = steps
+
+            def _step(self, td, next_td):
+                self.left -= 1
+                if self.left <= 0:
+                    os._exit(3)  # no exception, no cleanup: the process is just gone
+                return next_td
+
+        return CrashAfter(steps)
+
+
+class VersionedMLP(nn.Module):
+    """A small MLP actor whose weights carry a version number (a buffer, synced with them)."""
+
+    def __init__(self, obs_dim: int, act_dim: int, hidden: int = 32) -> None:
+        super().__init__()
+        self.net = nn.Sequential(nn.Linear(obs_dim, hidden), nn.Tanh(), nn.Linear(hidden, act_dim), nn.Tanh())
+        self.register_buffer("version", torch.zeros((), dtype=torch.int64))
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        action = self.net(obs)
+        return action, self.version.expand(obs.shape[:-1]).clone()
+
+
+def make_policy(obs_dim: int, act_dim: int, seed: int = 0):
+    from tensordict.nn import TensorDictModule
+
+    torch.manual_seed(seed)
+    return TensorDictModule(VersionedMLP(obs_dim, act_dim), in_keys=["observation"],
+                            out_keys=["action", "policy_version"])
+
+
+def env_dims(env_id: str) -> tuple[int, int]:
+    """Observation and action sizes of one state-obs env (built here once, then closed)."""
+    env = make_env(env_id)
+    try:
+        return env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1]
+    finally:
+        env.close()
+
+
+@torch.no_grad()
+def new_weights(policy, version: int, scale: float = 0.5) -> None:
+    """Stands in for a learner step: perturbs every weight and bumps the version."""
+    module = policy.module
+    for p in module.net.parameters():
+        p.add_(scale * torch.randn_like(p))
+    module.version.fill_(version)
+
+
+def make_collector(policy, *, collectors: int, frames_per_batch: int, total_frames: int,
+                   env_fn, address: str | None = None, num_cpus: int = 2, remote_configs=None,
+                   worker_logs: bool = False):
+    from torchrl.collectors import Collector
+
+    # TorchRL calls ray.init(**ray_init_config) unless Ray is already initialised, and shuts Ray
+    # down again with the collector when it started it.
+    ray_init_config = {"address": address} if address is not None else {"num_cpus": num_cpus}
+    # Ray prefixes every forwarded worker line with the actor's repr, and a Collector's repr is
+    # a whole page: off by default (a worker's error still reaches us as an exception).
+    ray_init_config["log_to_driver"] = worker_logs
+    if remote_configs is None:
+        # One CPU per actor; TorchRL's default also asks for 2 GiB of Ray "memory" per actor.
+        remote_configs = {"num_cpus": 1}
+    return Collector(
+        [env_fn] * collectors,
+        policy,
+        frames_per_batch=frames_per_batch,
+        total_frames=total_frames,
+        backend="ray",
+        sync=True,  # every batch: one slice per remote collector, same weights
+        backend_options={"ray_init_config": ray_init_config, "remote_configs": remote_configs},
+    )
+
+
+def summarize(batch) -> dict:
+    done = batch["next", "done"].squeeze(-1)
+    episodes = batch["next", "episode"][done]
+    return {
+        "frames": batch.numel(),
+        "episodes": int(done.sum()),
+        "successes": int(episodes["success_once"].sum()) if done.any() else 0,
+        "returns": episodes["return"].tolist() if done.any() else [],
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--env-id", default=ENV_ID)
+    p.add_argument("--collectors", type=int, default=2, help="remote collectors (Ray actors), default 2")
+    p.add_argument("--num-envs", type=int, default=1,
+                   help="envs per remote collector: 1 = ManiSkillEnv -> CPUUnbatch; N = ManiSkillEnv(num_envs=N)")
+    p.add_argument("--frames-per-batch", type=int, default=200, help="over all collectors (default 200)")
+    p.add_argument("--batches", type=int, default=4)
+    p.add_argument("--max-episode-steps", type=int, default=25,
+                   help="time limit, so that episodes end within a few batches (default 25)")
+    p.add_argument("--address", default=None,
+                   help="Ray cluster to join ('auto' after `ray start`); default: a local ray.init(num_cpus=...)")
+    p.add_argument("--num-cpus", type=int, default=2, help="CPUs of the local Ray instance (default 2)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--worker-logs", action="store_true", help="forward the actors' stdout/stderr here")
+    p.add_argument("--crash", choices=["factory", "exit"], default=None,
+                   help="demonstrate a failing remote collector: its env factory raises, or its process exits")
+    args = p.parse_args(argv)
+    if args.frames_per_batch % args.collectors:
+        p.error("--frames-per-batch must be a multiple of --collectors (sync=True splits it evenly)")
+
+    torch.set_num_threads(1)
+    t0 = time.perf_counter()
+    obs_dim, act_dim = env_dims(args.env_id)
+    policy = make_policy(obs_dim, act_dim, seed=args.seed)
+    env_fn = functools.partial(make_env, args.env_id, args.num_envs, args.max_episode_steps)
+    if args.crash == "factory":
+        env_fn = failing_env
+    elif args.crash == "exit":
+        env_fn = functools.partial(make_env, args.env_id, args.num_envs, args.max_episode_steps, crash_after=5)
+
+    collector = None
+    ok = True
+    try:
+        collector = make_collector(
+            policy, collectors=args.collectors, frames_per_batch=args.frames_per_batch,
+            total_frames=args.frames_per_batch * args.batches, env_fn=env_fn,
+            address=args.address, num_cpus=args.num_cpus, worker_logs=args.worker_logs,
+        )
+        collector.set_seed(args.seed)
+        collector.update_policy_weights_()  # version 0 to every remote collector
+        print(f"{args.collectors} remote collectors of {args.env_id} "
+              f"({'ManiSkillEnv -> CPUUnbatch' if args.num_envs == 1 else f'ManiSkillEnv(num_envs={args.num_envs})'}"
+              f" -> EpisodeMetrics), start-up {time.perf_counter() - t0:.1f} s")
+        frames = episodes = successes = 0
+        t1 = time.perf_counter()
+        for i, batch in enumerate(collector):
+            s = summarize(batch)
+            frames += s["frames"]
+            episodes += s["episodes"]
+            successes += s["successes"]
+            versions = sorted(set(batch["policy_version"].flatten().tolist()))
+            with torch.no_grad():
+                local = policy(batch.select("observation").clone())["action"]
+            same = torch.allclose(local, batch["action"], atol=1e-5)
+            ok &= same and versions == [i]
+            print(f"batch {i}: {s['frames']} frames {list(batch.shape)}, policy version {versions}, "
+                  f"actions = local policy's: {same}, episodes finished {s['episodes']}, "
+                  f"successes {s['successes']}")
+            new_weights(policy, version=i + 1)
+            collector.update_policy_weights_()  # the next batch runs on version i + 1
+        wall = time.perf_counter() - t1
+        print(f"frames {frames}  ({frames / wall:.1f} frames/s over {wall:.1f} s)")
+        print(f"episodes finished {episodes}")
+        print(f"success {successes}/{episodes}" + (f" ({100 * successes / episodes:.1f} %)" if episodes else ""))
+        print("remote collectors used the pushed weights: " + ("yes" if ok else "NO"))
+    finally:
+        if collector is not None:
+            collector.shutdown()
+        import ray
+
+        if ray.is_initialized():
+            ray.shutdown()
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
