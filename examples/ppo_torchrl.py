@@ -218,6 +218,7 @@ def episode_stats(batch: TensorDictBase) -> dict[str, float]:
 # ---------------------------------------------------------------------------- train
 def train(args: argparse.Namespace) -> dict[str, Any]:
     """Runs PPO; returns the last iteration's log record."""
+    start = time.perf_counter()  # wall time from here: env start-up, training and evaluation
     device = torch.device(args.device)
     if device.type == "cuda" and device.index is None:
         # ManiSkill reports "cuda:0": an indexless "cuda" would look like another device to TorchRL.
@@ -273,12 +274,13 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     eval_env = None
     if args.eval_every > 0:
         eval_env = make_eval_env(args.env_id, args.eval_envs, device, args.repeat, **_env_kwargs(args))
-        eval_steps = _time_limit(args) // args.repeat
+        eval_steps = -(-_time_limit(args) // args.repeat)  # ceil: a last partial repeat still counts
 
         def log_eval(frames: int, train_s: float, which: str, acting: Any) -> None:
             t = time.perf_counter()
             res = evaluate_policy(eval_env, acting, args.eval_episodes, args.eval_seed, eval_steps)
             rec = {"eval": which, "frames": frames, "train_s": round(train_s, 1),
+                   "wall_s": round(time.perf_counter() - start, 1),
                    "eval_s": round(time.perf_counter() - t, 1), **res}
             with log_path.open("a") as f:
                 f.write(json.dumps(rec) + "\n")
@@ -316,15 +318,20 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
             loss_critic=losses["loss_critic"].item(),
             frames_per_s=round(frames / (time.perf_counter() - t0 - eval_s), 1),
             train_s=round(time.perf_counter() - t0 - eval_s, 1),
+            wall_s=round(time.perf_counter() - start, 1),
         )
         with log_path.open("a") as f:
             f.write(json.dumps(record) + "\n")
         print(_format(record), flush=True)
+        out_of_time = args.max_minutes is not None and time.perf_counter() - start >= 60 * args.max_minutes
         if eval_env is not None and (frames // args.eval_every > (frames - batch.numel()) // args.eval_every
-                                     or it == iterations):
+                                     or it == iterations or out_of_time):
             t = time.perf_counter()
             log_eval(frames, record["train_s"], "policy", policy)
             eval_s += time.perf_counter() - t
+        if out_of_time:
+            print(f"--max-minutes {args.max_minutes} reached after {frames} frames: stopping", flush=True)
+            break
     collector.shutdown()
     if not env.is_closed:
         env.close()
@@ -378,7 +385,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--smoke", action="store_true",
                    help="tiny CPU run: 2 batched CPU envs, a few hundred frames")
     p.add_argument("--device", default=None, help="cuda (GPU sim) or cpu (CPU sim); default: cuda if available")
-    p.add_argument("--num-envs", type=int, default=None, help="default: 512 on GPU, 4 on CPU, 2 with --smoke")
+    p.add_argument("--num-envs", type=int, default=None, help="default: 512 on GPU, 2 on CPU and with --smoke")
     p.add_argument("--vec", choices=("batched", "parallel", "serial"), default="batched",
                    help="batched: ManiSkillEnv(num_envs=--num-envs) (one GPU simulator, or one CPU worker "
                         "process per env); parallel / serial: a ParallelEnv / SerialEnv of CPUUnbatch-ed "
@@ -406,6 +413,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--eval-envs", type=int, default=None,
                    help="parallel evaluation envs; default: --eval-episodes on the GPU, 2 on the CPU")
     p.add_argument("--eval-seed", type=int, default=10_000, help="evaluation episodes use seeds from here")
+    p.add_argument("--max-minutes", type=float, default=None,
+                   help="stop after this much wall time (training and evaluation), with a last evaluation")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="outputs/ppo")
     args = p.parse_args(argv)
@@ -425,7 +434,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     elif gpu:
         defaults = (512, 50, 2_000_000, 4, 800)
     else:
-        defaults = (4, 50, 20_000, 4, 200)
+        defaults = (2, 100, 300_000, 8, 50)  # chosen on the CPU sim: benchmarks/RESULTS.md, "PPO"
     for name, value in zip(("num_envs", "num_steps", "total_frames", "epochs", "minibatch_size"), defaults):
         if getattr(args, name) is None:
             setattr(args, name, value)
