@@ -1,9 +1,12 @@
-"""Finding the ManiSkill env under gym wrappers (no TorchRL import: the gym shim uses it too)."""
+"""ManiSkill/SAPIEN helpers with no TorchRL import (the gym shim uses them too): the ManiSkill
+env under gym wrappers, its render frame shape, and the GPU sim's PhysX library."""
 from __future__ import annotations
 
+import zipfile
+from pathlib import Path
 from typing import Any
 
-__all__ = ["maniskill_base_env", "render_frame_shape", "wrapper_attr"]
+__all__ = ["enable_physx_gpu", "maniskill_base_env", "render_frame_shape", "wrapper_attr"]
 
 
 def maniskill_base_env(env: Any):
@@ -31,3 +34,24 @@ def render_frame_shape(base: Any) -> tuple[int, ...]:
         (cfg,) = configs.values()
         return (cfg.height, cfg.width, 3)
     return tuple(base.render().shape[-3:])
+
+
+def enable_physx_gpu() -> None:
+    """Loads SAPIEN's PhysX GPU library, as ManiSkill's GPU sim does on its first env, but with an
+    error that says what to do: SAPIEN downloads the library on first use, which fails offline
+    with a bare network or zip traceback."""
+    import sapien.physx as physx
+
+    if physx.is_gpu_enabled():
+        return
+    try:
+        physx.enable_gpu()
+    except (OSError, zipfile.BadZipFile) as e:  # requests' errors are OSErrors
+        folder = Path.home() / ".sapien" / "physx" / physx.version()
+        raise RuntimeError(
+            f"The GPU sim needs SAPIEN's PhysX GPU library (libPhysXGpu_64.so in {folder}), which SAPIEN "
+            f"downloads on first use from its physx-precompiled GitHub release {physx.version()}; that failed: "
+            f"{type(e).__name__}: {e}. On a machine without internet access, copy that folder from a "
+            "machine where the GPU sim has run once (or unzip the release's linux-so.zip into it), "
+            "or use the CPU sim (sim_backend='cpu')."
+        ) from e

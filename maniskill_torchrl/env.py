@@ -19,7 +19,7 @@ from torchrl.data.utils import DEVICE_TYPING
 from torchrl.envs.common import _EnvWrapper
 from torchrl.envs.utils import _classproperty
 
-from maniskill_torchrl._maniskill import maniskill_base_env, render_frame_shape, wrapper_attr
+from maniskill_torchrl._maniskill import enable_physx_gpu, maniskill_base_env, render_frame_shape, wrapper_attr
 from maniskill_torchrl.cpu_vector import CPUVectorEnv
 from maniskill_torchrl.specs import (
     done_spec,
@@ -434,12 +434,20 @@ class ManiSkillEnv(ManiSkillWrapper):
             maniskill_kwargs.setdefault("render_mode", "rgb_array")
         self._env_id = env_id
         backend = str(maniskill_kwargs.get("sim_backend", "auto")).lower()
-        on_cpu = backend in _CPU_BACKENDS or (backend == "auto" and not torch.cuda.is_available())
+        # ManiSkill's "auto" is the CPU sim for one env; for more, the GPU sim when there is CUDA.
+        on_cpu = backend in _CPU_BACKENDS or (backend == "auto" and (num_envs == 1 or not torch.cuda.is_available()))
         if num_envs > 1 and on_cpu:
             # The CPU sim holds one env per process: one worker process per env.
             maniskill_kwargs["sim_backend"] = "physx_cpu"
             env = CPUVectorEnv(env_id, num_envs, **maniskill_kwargs)
         else:
+            if not on_cpu:
+                if not torch.cuda.is_available():
+                    raise ValueError(
+                        f"sim_backend={maniskill_kwargs['sim_backend']!r} is ManiSkill's GPU sim, which needs "
+                        "CUDA, and torch.cuda.is_available() is False: use sim_backend='cpu' (or 'auto')."
+                    )
+                enable_physx_gpu()
             env = gym.make(env_id, num_envs=num_envs, **maniskill_kwargs)
         super().__init__(
             env,

@@ -222,6 +222,21 @@ for part in "$KIT.tmp"/kit*; do
 done
 rm -rf "$KIT.tmp"
 
+# --------------------------------------------------------- PhysX GPU library
+# SAPIEN downloads libPhysXGpu_64.so from GitHub on the GPU sim's first use; the accelerator
+# machine cannot. When this machine has it (the GPU sim ran here once, or it was unzipped into
+# the folder by hand), it travels as its own part, .gpu/physx, which gpu_check.sh installs.
+physx_ver="$(.venv/bin/python -c 'import sapien.physx as p; print(p.version())' 2>/dev/null || echo 105.1-physx-5.3.1.patch0)"
+physx_src="${GPU_KIT_PHYSX_DIR:-$HOME/.sapien/physx/$physx_ver}"
+if [[ -f "$physx_src/libPhysXGpu_64.so" ]]; then
+    mkdir -p "$KIT/physx" && cp "$physx_src"/* "$KIT/physx/" && echo "$physx_ver" >"$KIT/physx/VERSION"
+    log "PhysX GPU library $physx_ver from $physx_src: carry .gpu/physx in the first run, after .gpu/kit was installed"
+else
+    log "NOTE: no PhysX GPU library in $physx_src: the GPU sim cannot start on a machine without internet"
+    log "      access (SAPIEN downloads it from its physx-precompiled GitHub release $physx_ver on first use);"
+    log "      unzip that release's linux-so.zip there (or set GPU_KIT_PHYSX_DIR) and rerun to carry it"
+fi
+
 # ------------------------------------------------------------------- sizes
 log "parts (each is one carry of the device tool; limit ${PART_MIB} MiB per part, 64 MiB per command with the repo):"
 status=0

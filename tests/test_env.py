@@ -605,3 +605,25 @@ def test_torchrl_gym_wrapper_fails_on_maniskill():
             GymWrapper(env)
     finally:
         env.close()
+
+
+def test_gpu_sim_without_cuda_says_what_to_do(monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(ValueError, match="needs CUDA.*sim_backend='cpu'"):
+        ManiSkillEnv("PushCube-v1", num_envs=4, sim_backend="gpu")
+
+
+def test_physx_gpu_download_failure_says_what_to_do(monkeypatch):
+    import requests
+    import sapien.physx
+
+    from maniskill_torchrl._maniskill import enable_physx_gpu
+
+    def offline():
+        raise requests.exceptions.ConnectionError("Failed to resolve 'github.com'")
+
+    monkeypatch.setattr(sapien.physx, "is_gpu_enabled", lambda: False)
+    monkeypatch.setattr(sapien.physx, "enable_gpu", offline)
+    with pytest.raises(RuntimeError, match=r"libPhysXGpu_64\.so.*Failed to resolve.*sim_backend='cpu'") as info:
+        enable_physx_gpu()
+    assert isinstance(info.value.__cause__, requests.exceptions.ConnectionError)
