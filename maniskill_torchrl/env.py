@@ -268,7 +268,9 @@ class ManiSkillWrapper(_EnvWrapper):
         return source
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = tensordict.get("action")
+        action = tensordict.get("action", None)
+        if action is None:
+            raise self._missing_action(tensordict, "action")
         if self._action_names is None:
             if action.shape != self._action_shapes:
                 raise ValueError(
@@ -276,8 +278,10 @@ class ManiSkillWrapper(_EnvWrapper):
                     f"{tuple(self._action_shapes)} ([num_envs, *single_action_space.shape])."
                 )
         else:
-            action = {k: action.get(k) for k in self._action_names}
+            action = {k: action.get(k, None) for k in self._action_names}
             for k, a in action.items():
+                if a is None:
+                    raise self._missing_action(tensordict, ("action", k))
                 if a.shape != self._action_shapes[k]:
                     raise ValueError(
                         f"ManiSkill action {k!r} of shape {tuple(a.shape)}, expected "
@@ -300,6 +304,14 @@ class ManiSkillWrapper(_EnvWrapper):
             source["truncated"] = truncated.view(shape)
             source["done"] = done.view(shape)
         return TensorDict._new_unsafe(source, batch_size=self.batch_size, device=self.device)
+
+    def _missing_action(self, tensordict: TensorDictBase, key: str | tuple[str, str]) -> KeyError:
+        keys = sorted(map(str, tensordict.keys(include_nested=True, leaves_only=True)))
+        return KeyError(
+            f"{type(self).__name__}.step() found no action at {key!r} in the tensordict, whose entries are "
+            f"{keys}. Set the action entries {self.action_keys} (shapes from env.full_action_spec), e.g. "
+            "td = env.rand_action(td) for random actions, or run a policy that writes them."
+        )
 
     def _step_proc_data(self, next_tensordict_out: TensorDictBase) -> TensorDictBase:
         # _step already writes reward and the three done entries with their spec shapes and dtypes,
@@ -363,17 +375,48 @@ class ManiSkillWrapper(_EnvWrapper):
 
     def close(self, *, raise_if_closed: bool = True) -> None:
         env = self.__dict__.get("_env")
-        if env is not None:
+        if env is not None and not isinstance(env, _ClosedEnv):
+            # A stand-in that says the env is closed: a closed ManiSkill sim fails with AttributeErrors.
+            self._env = _ClosedEnv(f"{type(self).__name__}({self._env_name(env)})")
             env.close()
         super().close(raise_if_closed=raise_if_closed)
 
+    @staticmethod
+    def _env_name(env: Any) -> str:
+        spec = getattr(env.unwrapped, "spec", None)
+        return spec.id if spec is not None else type(env.unwrapped).__name__
+
     def __repr__(self) -> str:
-        spec = getattr(self._env.unwrapped, "spec", None)
-        name = spec.id if spec is not None else type(self._env.unwrapped).__name__
+        if isinstance(self._env, _ClosedEnv):
+            return f"{self._env.name} (closed)"
+        name = self._env_name(self._env)
         return (
             f"{type(self).__name__}(env={name}, num_envs={self.batch_size[0]}, "
             f"device={self.device}, gpu_sim={self.gpu_sim_enabled})"
         )
+
+
+class _ClosedEnv:
+    """Takes the ManiSkill env's place after ``close()``: stepping, resetting or rendering says that
+    the env is closed (a closed ManiSkill sim fails with unrelated AttributeErrors)."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+
+    def _closed(self, *args: Any, **kwargs: Any) -> Any:
+        raise RuntimeError(
+            f"{self.name} is closed: it cannot step, reset or render any more. "
+            "Make a new env (ManiSkillEnv(...) or ManiSkillWrapper(gym.make(...))) instead of reusing a closed one."
+        )
+
+    step = reset = render = _closed
+
+    @property
+    def unwrapped(self) -> Any:
+        return self._closed()
+
+    def close(self) -> None:
+        return None
 
 
 class ManiSkillEnv(ManiSkillWrapper):
