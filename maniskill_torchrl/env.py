@@ -306,8 +306,8 @@ class ManiSkillWrapper(_EnvWrapper):
         return TensorDict._new_unsafe(source, batch_size=self.batch_size, device=self.device)
 
     def _missing_action(self, tensordict: TensorDictBase, key: str | tuple[str, str]) -> KeyError:
-        keys = sorted(map(str, tensordict.keys(include_nested=True, leaves_only=True)))
-        return KeyError(
+        keys = sorted(tensordict.keys(include_nested=True, leaves_only=True), key=str)
+        return _MissingActionError(
             f"{type(self).__name__}.step() found no action at {key!r} in the tensordict, whose entries are "
             f"{keys}. Set the action entries {self.action_keys} (shapes from env.full_action_spec), e.g. "
             "td = env.rand_action(td) for random actions, or run a policy that writes them."
@@ -394,6 +394,13 @@ class ManiSkillWrapper(_EnvWrapper):
             f"{type(self).__name__}(env={name}, num_envs={self.batch_size[0]}, "
             f"device={self.device}, gpu_sim={self.gpu_sim_enabled})"
         )
+
+
+class _MissingActionError(KeyError):
+    """A KeyError whose message prints as written (KeyError prints the repr of its argument)."""
+
+    def __str__(self) -> str:
+        return str(self.args[0])
 
 
 class _ClosedEnv:
