@@ -562,6 +562,32 @@ def test_wrong_action_shape(envs):
         two.step(td.set("action", bad))
 
 
+def test_step_without_action_says_what_to_pass(envs):
+    env = envs.torchrl("pick")
+    td = env.reset(seed=0)
+    with pytest.raises(KeyError, match=r"no action at 'action'.*'observation'.*rand_action"):
+        env.step(td)
+    env.step(env.rand_action(td))  # the env is still usable
+    two = envs.torchrl("two_robot")
+    td = two.reset(seed=0)
+    with pytest.raises(KeyError, match=r"no action at 'action'.*\('action', 'panda_wristcam-0'\)"):
+        two.step(td)
+    half = TensorDict({"panda_wristcam-0": torch.zeros(1, 8)}, [1])
+    with pytest.raises(KeyError, match=r"no action at \('action', 'panda_wristcam-1'\)"):
+        two.step(td.set("action", half))
+
+
+def test_step_or_reset_after_close_says_closed():
+    env = ManiSkillEnv("PickCube-v1", obs_mode="state")
+    td = env.rand_action(env.reset(seed=0))
+    env.close()
+    assert env.is_closed and "closed" in repr(env)
+    for call in (lambda: env.step(td), lambda: env.reset(), lambda: env.rand_step(td), env.render):
+        with pytest.raises(RuntimeError, match=r"ManiSkillEnv\(PickCube-v1\) is closed.*new env"):
+            call()
+    env.close(raise_if_closed=False)  # closing again is harmless
+
+
 @pytest.mark.parametrize("kwargs", [{}, {"sim_backend": "cpu"}, {"sim_backend": "physx_cpu"}])
 def test_num_envs_on_cpu_sim(kwargs):
     if not kwargs and torch.cuda.is_available():
