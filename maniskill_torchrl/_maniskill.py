@@ -1,12 +1,36 @@
 """ManiSkill/SAPIEN helpers with no TorchRL import (the gym shim uses them too): the ManiSkill
-env under gym wrappers, its render frame shape, and the GPU sim's PhysX library."""
+env under gym wrappers, its render frame shape, the registered task ids, and the GPU sim's
+PhysX library."""
 from __future__ import annotations
 
 import zipfile
 from pathlib import Path
 from typing import Any
 
-__all__ = ["enable_physx_gpu", "maniskill_base_env", "render_frame_shape", "wrapper_attr"]
+__all__ = [
+    "enable_physx_gpu",
+    "maniskill_base_env",
+    "registered_env_ids",
+    "render_frame_shape",
+    "similar_env_ids",
+    "wrapper_attr",
+]
+
+
+def registered_env_ids() -> Any:
+    """ManiSkill's task registry (``env_id -> EnvSpec``), after registering the tasks."""
+    import mani_skill.envs  # noqa: F401  (registers the tasks)
+    from mani_skill.utils.registration import REGISTERED_ENVS
+
+    return REGISTERED_ENVS
+
+
+def similar_env_ids(env_id: str, limit: int = 5) -> list[str]:
+    """Registered task ids that contain ``env_id``'s name before the first ``-`` (the "did you mean")."""
+    stem = env_id.split("-")[0].lower()
+    if not stem:
+        return []
+    return [e for e in sorted(registered_env_ids()) if stem in e.lower()][:limit]
 
 
 def maniskill_base_env(env: Any):

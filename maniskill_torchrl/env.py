@@ -13,13 +13,19 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from torchrl.data import Bounded, Composite
 from torchrl.data.utils import DEVICE_TYPING
-from torchrl.envs.common import _EnvWrapper
-from torchrl.envs.utils import _classproperty
 
-from maniskill_torchrl._maniskill import enable_physx_gpu, maniskill_base_env, render_frame_shape, wrapper_attr
+from maniskill_torchrl._private import EnvWrapper, classproperty, new_tensordict
+from maniskill_torchrl._maniskill import (
+    enable_physx_gpu,
+    maniskill_base_env,
+    registered_env_ids,
+    render_frame_shape,
+    similar_env_ids,
+    wrapper_attr,
+)
 from maniskill_torchrl.cpu_vector import CPUVectorEnv
 from maniskill_torchrl.specs import (
     done_spec,
@@ -36,7 +42,7 @@ _has_maniskill = importlib.util.find_spec("mani_skill") is not None
 _CPU_BACKENDS = ("cpu", "physx_cpu")
 
 
-class ManiSkillWrapper(_EnvWrapper):
+class ManiSkillWrapper(EnvWrapper):
     """A TorchRL env around a ManiSkill 3 env made with ``gym.make``.
 
     The batch is ManiSkill's ``num_envs`` and the device is the simulation's
@@ -103,7 +109,7 @@ class ManiSkillWrapper(_EnvWrapper):
     git_url = "https://github.com/haosulab/ManiSkill"
     libname = "mani_skill"
 
-    @_classproperty
+    @classproperty
     def available_envs(cls) -> list[str]:
         if not _has_maniskill:
             return []
@@ -111,7 +117,7 @@ class ManiSkillWrapper(_EnvWrapper):
 
         return sorted(REGISTERED_ENVS)
 
-    @_classproperty
+    @classproperty
     def lib(cls):
         import mani_skill
 
@@ -303,7 +309,7 @@ class ManiSkillWrapper(_EnvWrapper):
             source["terminated"] = terminated.view(shape)
             source["truncated"] = truncated.view(shape)
             source["done"] = done.view(shape)
-        return TensorDict._new_unsafe(source, batch_size=self.batch_size, device=self.device)
+        return new_tensordict(source, batch_size=self.batch_size, device=self.device)
 
     def _missing_action(self, tensordict: TensorDictBase, key: str | tuple[str, str]) -> KeyError:
         keys = sorted(tensordict.keys(include_nested=True, leaves_only=True), key=str)
@@ -349,7 +355,7 @@ class ManiSkillWrapper(_EnvWrapper):
             seed = self._draw_seed() if seed is None else seed
         obs, info = self._env.reset(seed=seed, options=options)
         source = self._to_tensordict(obs, info)
-        return TensorDict._new_unsafe(source, batch_size=self.batch_size, device=self.device)
+        return new_tensordict(source, batch_size=self.batch_size, device=self.device)
 
     # --------------------------------------------------------------- seeding
     def _set_seed(self, seed: int | None) -> None:
@@ -468,14 +474,11 @@ class ManiSkillEnv(ManiSkillWrapper):
         allow_done_after_reset: bool = False,
         **maniskill_kwargs,
     ) -> None:
-        import mani_skill.envs  # noqa: F401  (registers the tasks)
-        from mani_skill.utils.registration import REGISTERED_ENVS
-
-        if env_id not in REGISTERED_ENVS:
-            close = [e for e in sorted(REGISTERED_ENVS) if env_id.split("-")[0].lower() in e.lower()]
+        if env_id not in registered_env_ids():
+            close = similar_env_ids(env_id)
             raise ValueError(
                 f"Unknown ManiSkill env id {env_id!r}. "
-                + (f"Did you mean one of {close[:5]}? " if close else "")
+                + (f"Did you mean one of {close}? " if close else "")
                 + "ManiSkillEnv.available_envs lists the registered tasks."
             )
         if not isinstance(num_envs, int) or num_envs < 1:

@@ -448,9 +448,13 @@ def test_collector_resets_finished_envs():
 
 
 # ============================================================================ errors, exports
-@pytest.mark.parametrize("bad", [0, -1, 2.5, True, "3", None])
-def test_bad_repeat(bad):
-    with pytest.raises(ValueError, match=r"int >= 1.*1 means no repeat"):
+@pytest.mark.parametrize(
+    ("bad", "error"),
+    [(0, ValueError), (-1, ValueError), (2.5, TypeError), (True, TypeError), ("3", TypeError), (None, TypeError)],
+)
+def test_bad_repeat(bad, error):
+    # One check for the transform and the gym shim: ValueError for a bad value, TypeError for a non-int.
+    with pytest.raises(error, match=r"int >= 1.*1 means no repeat"):
         ActionRepeat(bad)
 
 

@@ -1,4 +1,4 @@
-"""The shared core on its own: numpy-exact episode return on every code path, masked merge.
+"""The shared core on its own (masked_merge, episode_stats, numpy_sum): numpy-exact episode return on every code path, masked merge.
 
 The reference here is numpy itself (``np.sum`` over a python list of float32 rewards, as
 ManiSkill's CPUGymWrapper computes the return) and plain per-env python bookkeeping.
@@ -12,7 +12,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from tensordict import TensorDict
 
-from maniskill_torchrl.core import EpisodeStats, any_done, merge_step, pairwise_sum
+from maniskill_torchrl.episode_stats import EpisodeStats
+from maniskill_torchrl.masked_merge import any_done, merge_step
+from maniskill_torchrl.numpy_sum import pairwise_sum
 
 
 def _bits(x: np.float32) -> bytes:
@@ -39,7 +41,7 @@ def test_pairwise_sum_matches_numpy(n):
 def test_episode_return_bit_exact_with_resets(batch, device_path):
     rng = np.random.default_rng(7)
     stats = EpisodeStats(batch, "cpu", has_success=True, has_fail=True)
-    assert stats._numpy_sum == (device_path == "numpy")
+    assert stats._sum.uses_numpy == (device_path == "numpy")
     n_envs = int(np.prod(batch)) if batch else 1
     rewards: list[list[np.ndarray]] = [[] for _ in range(n_envs)]
     success_once = np.zeros(n_envs, bool)

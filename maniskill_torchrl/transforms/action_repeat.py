@@ -6,7 +6,8 @@ from tensordict import TensorDictBase
 from torchrl.envs import Compose, EnvBase, Transform, TransformedEnv
 from torchrl.envs.batched_envs import BatchedEnvBase
 
-from maniskill_torchrl.core import any_done, merge_step
+from maniskill_torchrl._private import complete_done
+from maniskill_torchrl.masked_merge import any_done, check_repeat, merge_step
 
 __all__ = ["ActionRepeat"]
 
@@ -54,6 +55,10 @@ class ActionRepeat(Transform):
         repeat (int): inner steps per outer step, ``>= 1``. ``repeat=1`` is a
             plain step.
 
+    Raises:
+        TypeError: ``repeat`` is not an int.
+        ValueError: ``repeat < 1``.
+
     Examples:
         >>> from torchrl.envs import Compose, StepCounter, TransformedEnv
         >>> from maniskill_torchrl import ManiSkillEnv
@@ -71,11 +76,7 @@ class ActionRepeat(Transform):
     """
 
     def __init__(self, repeat: int) -> None:
-        if isinstance(repeat, bool) or not isinstance(repeat, int) or repeat < 1:
-            raise ValueError(
-                f"ActionRepeat(repeat) needs an int >= 1 (the number of inner steps per step; "
-                f"1 means no repeat), got {repeat!r} of type {type(repeat).__name__}."
-            )
+        repeat = check_repeat(repeat)
         super().__init__()
         self.repeat = repeat
         self._stash: TensorDictBase | None = None
@@ -185,5 +186,5 @@ class _ParentInfo:
             keys = set(out.keys(True, True))
             complete = self._complete = all(k in keys for k in self.done_keys)
         if not complete:
-            base._complete_done(base.full_done_spec, out)
+            complete_done(base, out)
         return out

@@ -6,7 +6,7 @@ from tensordict import TensorDictBase
 from torchrl.data import Categorical, Composite, TensorSpec, Unbounded
 from torchrl.envs import Transform
 
-from maniskill_torchrl.core import EpisodeStats
+from maniskill_torchrl.episode_stats import EpisodeField, EpisodeStats, episode_fields
 
 __all__ = ["EpisodeMetrics"]
 
@@ -98,27 +98,14 @@ class EpisodeMetrics(Transform):
     def _episode_spec(self) -> Composite:
         parent = self.parent
         batch, device = parent.batch_size, parent.device
-        has_success, has_fail = self._flags()
 
-        def flag():
-            return Categorical(2, shape=batch, dtype=torch.bool, device=device)
+        def spec(field: EpisodeField) -> TensorSpec:
+            if field.dtype == torch.bool:
+                return Categorical(2, shape=batch, dtype=torch.bool, device=device)
+            return Unbounded(shape=batch, dtype=field.dtype, device=device)
 
-        spec = Composite(
-            {
-                "return": Unbounded(shape=batch, dtype=torch.float32, device=device),
-                "episode_len": Unbounded(shape=batch, dtype=torch.int64, device=device),
-                "reward": Unbounded(shape=batch, dtype=torch.float32, device=device),
-            },
-            shape=batch,
-            device=device,
-        )
-        if has_success:
-            spec["success_once"] = flag()
-            spec["success_at_end"] = flag()
-        if has_fail:
-            spec["fail_once"] = flag()
-            spec["fail_at_end"] = flag()
-        return spec
+        fields = episode_fields(*self._flags())
+        return Composite({f.name: spec(f) for f in fields}, shape=batch, device=device)
 
     def transform_observation_spec(self, observation_spec: TensorSpec) -> TensorSpec:
         observation_spec["episode"] = self._episode_spec()

@@ -5,8 +5,8 @@
 - :class:`ActionRepeatWrapper` (``wrappers/action_repeat.py``): masked action
   repeat on batched torch data.
 
-Both give ManiSkill's outputs bit for bit, on the same TensorDict core
-(:mod:`maniskill_torchrl.core`) as the TorchRL transforms.
+Both give ManiSkill's outputs bit for bit, on the same core as the TorchRL
+transforms (:mod:`maniskill_torchrl.masked_merge`, :mod:`maniskill_torchrl.episode_stats`).
 """
 from maniskill_torchrl.wrappers.action_repeat import ActionRepeatWrapper
 from maniskill_torchrl.wrappers.gymnasium import CPUGymWrapper

@@ -3,12 +3,11 @@
 Change ``from mani_skill.utils.wrappers import ActionRepeatWrapper`` to
 ``from maniskill_torchrl.wrappers import ActionRepeatWrapper``; the batched torch
 outputs stay the same. The inner steps are merged by
-:func:`maniskill_torchrl.core.merge_step`, the same code as the TorchRL
-``ActionRepeat`` transform.
+:func:`maniskill_torchrl.masked_merge.keep_where`, the rule of the TorchRL
+``ActionRepeat`` transform, directly on ManiSkill's dicts.
 """
 from __future__ import annotations
 
-import numbers
 from typing import Any
 
 import gymnasium as gym
@@ -18,47 +17,34 @@ from mani_skill.utils.wrappers.action_repeat import (
     ActionRepeatWrapper as _ManiSkillActionRepeatWrapper,
 )
 from mani_skill.utils.wrappers.gymnasium import CPUGymWrapper as _ManiSkillCPUGymWrapper
-from tensordict import TensorDict, TensorDictBase
 
-from maniskill_torchrl.core import any_done, merge_step
+from maniskill_torchrl.masked_merge import check_repeat, keep_where
 from maniskill_torchrl.wrappers._common import require_maniskill_env
 
 __all__ = ["ActionRepeatWrapper"]
 
-_REWARD_KEYS = ("reward",)
-_DONE_KEYS = ("terminated", "truncated")
 
+def _merge(acc: Any, new: Any, running: torch.Tensor | None, batch: int) -> Any:
+    """``new`` for the envs in ``running`` (all if ``None``), ``acc`` for the others; a new object.
 
-def _batched_part(d: dict, batch: int) -> dict:
-    """The nested dict of ``d``'s tensors with a leading ``batch`` dim (what the merge handles)."""
-    out = {}
-    for k, v in d.items():
-        if isinstance(v, torch.Tensor):
-            if v.ndim and v.shape[0] == batch:
-                out[k] = v
-        elif isinstance(v, dict):
-            out[k] = _batched_part(v, batch)
-    return out
-
-
-def _rebuild(first: dict, last: dict, merged: TensorDictBase) -> dict:
-    """``first``'s structure with merged tensors; other values from the last inner step.
-
-    As ManiSkill's wrapper: batched tensors are merged per env, any other value
-    (python scalars, unbatched tensors) is overwritten by each inner step.
+    As ManiSkill's wrapper: batched tensors (leading dim ``batch``) are merged per
+    env, dicts key by key (``acc``'s keys first), and any other value (python
+    scalars, unbatched tensors) is the last inner step's.
     """
-    out = {}
-    for k, v in first.items():
-        if isinstance(v, dict):
-            out[k] = _rebuild(v, last.get(k, v), merged.get(k))
-        elif k in merged.keys():
-            out[k] = merged.get(k)
-        else:
-            out[k] = last.get(k, v)
-    for k, v in last.items():
-        if k not in out:
-            out[k] = v
-    return out
+    if isinstance(new, dict) and isinstance(acc, dict):
+        out = dict(acc)
+        for k, v in new.items():
+            out[k] = _merge(acc[k], v, running, batch) if k in acc else v
+        return out
+    if (
+        running is not None
+        and isinstance(new, torch.Tensor)
+        and isinstance(acc, torch.Tensor)
+        and new.ndim
+        and new.shape[0] == batch
+    ):
+        return keep_where(running, new, acc)
+    return new
 
 
 class ActionRepeatWrapper(_ManiSkillActionRepeatWrapper):
@@ -115,17 +101,7 @@ class ActionRepeatWrapper(_ManiSkillActionRepeatWrapper):
                     "ActionRepeatWrapper first: CPUGymWrapper(ActionRepeatWrapper(env, repeat))."
                 )
             inner = getattr(inner, "env", None)
-        if isinstance(repeat, bool) or not isinstance(repeat, numbers.Integral):
-            raise TypeError(
-                f"repeat must be an int >= 1, got {type(repeat).__name__} {repeat!r}; "
-                "pass e.g. repeat=2."
-            )
-        if repeat < 1:
-            raise ValueError(
-                f"repeat must be >= 1, got {repeat}; repeat=1 applies each action once (no repeat)."
-            )
-        gym.Wrapper.__init__(self, env)
-        self.repeat = int(repeat)
+        super().__init__(env, check_repeat(repeat))
 
     @property
     def num_envs(self) -> int:
@@ -153,38 +129,19 @@ class ActionRepeatWrapper(_ManiSkillActionRepeatWrapper):
         if n_done == done.numel():
             return first
         batch = done.shape[0]
-        batch_size = torch.Size((batch,))
-        obs_is_dict = isinstance(obs, dict)
-
-        def pack(o, r, te, tr, inf) -> TensorDict:
-            return TensorDict._new_unsafe(
-                {
-                    "obs": _batched_part(o, batch) if obs_is_dict else o,
-                    "reward": r,
-                    "terminated": te,
-                    "truncated": tr,
-                    "info": _batched_part(inf, batch),
-                },
-                batch_size=batch_size,
-            )
-
-        acc = pack(*first)
         running = ~done if n_done else None
-        last_obs, last_info = obs, info
         for _ in range(self.repeat - 1):
-            last_obs, r, te, tr, last_info = self.env.step(action)
-            acc = merge_step(acc, pack(last_obs, r, te, tr, last_info), running, _REWARD_KEYS, _DONE_KEYS)
-            done = any_done(acc, _DONE_KEYS)
+            o, r, te, tr, inf = self.env.step(action)
+            obs, info = _merge(obs, o, running, batch), _merge(info, inf, running, batch)
+            if running is None:  # every env ran: a plain fold
+                reward, terminated, truncated = reward + r, terminated | te, truncated | tr
+            else:
+                reward = keep_where(running, reward + r, reward)
+                terminated = keep_where(running, terminated | te, terminated)
+                truncated = keep_where(running, truncated | tr, truncated)
+            done = terminated | truncated
             n_done = int(done.sum())
             if n_done == done.numel():
                 break
             running = ~done if n_done else None
-
-        out_obs = _rebuild(obs, last_obs, acc.get("obs")) if obs_is_dict else acc.get("obs")
-        return (
-            out_obs,
-            acc.get("reward"),
-            acc.get("terminated"),
-            acc.get("truncated"),
-            _rebuild(info, last_info, acc.get("info")),
-        )
+        return obs, reward, terminated, truncated, info

@@ -3,7 +3,7 @@
 Change ``from mani_skill.utils.wrappers import CPUGymWrapper`` to
 ``from maniskill_torchrl.wrappers import CPUGymWrapper``; observations, rewards,
 flags, infos and ``info["episode"]`` stay the same, value for value and type for
-type. The episode metrics come from :class:`maniskill_torchrl.core.EpisodeStats`,
+type. The episode metrics come from :class:`maniskill_torchrl.episode_stats.EpisodeStats`,
 the same code as the TorchRL ``EpisodeMetrics`` transform.
 """
 from __future__ import annotations
@@ -17,12 +17,23 @@ from mani_skill.envs.sapien_env import BaseEnv
 from mani_skill.utils.common import to_numpy
 from mani_skill.utils.wrappers.gymnasium import CPUGymWrapper as _ManiSkillCPUGymWrapper
 
-from maniskill_torchrl.core import EpisodeStats
+from maniskill_torchrl.episode_stats import EpisodeField, EpisodeStats
 from maniskill_torchrl.wrappers._common import np_unbatch, require_maniskill_env
 
 __all__ = ["CPUGymWrapper"]
 
 _IMAGE_RENDER_MODES = ("rgb_array", "sensors", "all")
+
+
+# ManiSkill's key order of info["episode"]: the *_once flags, return / episode_len / reward, the *_at_end flags.
+_GYM_RANK = {"once": 0, "at_end": 2}
+
+
+def _gym_layout(fields: tuple[EpisodeField, ...], ignore_terminations: bool) -> list[tuple[str, bool]]:
+    """``(name, as np.float32)`` per ``info["episode"]`` entry; ``*_at_end`` only with ``ignore_terminations``."""
+    kept = [f for f in fields if f.kind != "at_end" or ignore_terminations]
+    kept.sort(key=lambda f: _GYM_RANK.get(f.kind, 1))
+    return [(f.name, f.dtype == torch.float32) for f in kept]
 
 
 def _tensor(x: Any) -> torch.Tensor | None:
@@ -102,13 +113,10 @@ class CPUGymWrapper(_ManiSkillCPUGymWrapper):
                 "CPUGymWrapper needs an env on the CPU sim, got one on the GPU sim. Make it with "
                 "gym.make(..., num_envs=1, sim_backend='physx_cpu')."
             )
-        # ManiSkill's __init__ only adds the asserts replaced above; gym.Wrapper's does the rest.
-        gym.Wrapper.__init__(self, env)
-        self.observation_space = base.single_observation_space
-        self.action_space = base.single_action_space
-        self.ignore_terminations = ignore_terminations
-        self.record_metrics = record_metrics
+        # The checks above replace ManiSkill's asserts, which now pass.
+        super().__init__(env, ignore_terminations, record_metrics)
         self._stats: EpisodeStats | None = None
+        self._layouts: dict[bool, list[tuple[str, bool]]] = {}
 
     @property
     def base_env(self) -> BaseEnv:
@@ -119,7 +127,7 @@ class CPUGymWrapper(_ManiSkillCPUGymWrapper):
         obs, reward, terminated, truncated, info = self.env.step(to_numpy(action))
         out_info = {k: np_unbatch(v) for k, v in info.items()}
         if self.record_metrics:
-            out_info["episode"] = self._episode(reward, info, out_info)
+            out_info["episode"] = self._episode(reward, info)
         return (
             np_unbatch(obs),
             np_unbatch(reward),
@@ -128,30 +136,19 @@ class CPUGymWrapper(_ManiSkillCPUGymWrapper):
             out_info,
         )
 
-    def _episode(self, reward: Any, info: dict, out_info: dict) -> dict[str, Any]:
-        success = info.get("success")
-        fail = info.get("fail")
+    def _episode(self, reward: Any, info: dict) -> dict[str, Any]:
         stats = self._stats
         if stats is None:
             stats = self._stats = EpisodeStats(
-                (1,), has_success=success is not None, has_fail=fail is not None
+                (1,), has_success="success" in info, has_fail="fail" in info
             )
-        ep = stats.update(_tensor(reward), _tensor(success), _tensor(fail))
+            self._layouts = {ignore: _gym_layout(stats.fields, ignore) for ignore in (False, True)}
+        ep = stats.update(_tensor(reward), _tensor(info.get("success")), _tensor(info.get("fail")))
         # Key order and python / numpy types as ManiSkill's CPUGymWrapper.
-        out: dict[str, Any] = {}
-        if stats.has_success:
-            out["success_once"] = ep.get("success_once").item()
-        if stats.has_fail:
-            out["fail_once"] = ep.get("fail_once").item()
-        out["return"] = ep.get("return").numpy()[0]
-        out["episode_len"] = ep.get("episode_len").item()
-        out["reward"] = ep.get("reward").numpy()[0]
-        if self.ignore_terminations:
-            if stats.has_success:
-                out["success_at_end"] = out_info["success"]
-            if stats.has_fail:
-                out["fail_at_end"] = out_info["fail"]
-        return out
+        return {
+            name: ep.get(name).numpy()[0] if as_numpy else ep.get(name).item()
+            for name, as_numpy in self._layouts[bool(self.ignore_terminations)]
+        }
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
