@@ -1,25 +1,39 @@
 # maniskill_torchrl developer targets. Run `make` for help.
 .DEFAULT_GOAL := help
-.PHONY: help setup test demo bench clean gpu-kit
+.PHONY: help setup test test-nightly lint demo bench clean gpu-kit
 
+# MANISKILL=release (default: mani-skill 3.0.x, in .venv) or nightly (mani-skill-nightly, in .venv-nightly).
+MANISKILL   ?= release
+ifeq ($(MANISKILL),nightly)
+VENV        := .venv-nightly
+else
 VENV        := .venv
+endif
 PYTEST_ARGS ?=
 DEMO_ARGS   ?=
 
 help:
 	@echo "Targets:"
-	@echo "  make setup   create .venv and install the package (+ test, demo extras); checks Vulkan"
+	@echo "  make setup   create .venv and install the package (+ test, demo, distributed, maniskill extras); checks Vulkan"
 	@echo "  make test    run the test suite (PYTEST_ARGS=... passed to pytest)"
+	@echo "               MANISKILL=nightly: against mani-skill-nightly, in .venv-nightly (= make test-nightly)"
+	@echo "  make lint    ruff check + ruff format --check"
 	@echo "  make demo    run the demo CLI (DEMO_ARGS=... passed to 'maniskill-torchrl demo')"
 	@echo "  make bench   run benchmarks/run_all.py"
 	@echo "  make gpu-kit fill .gpu/ with the wheels and .debs for the GPU checks (benchmarks/README.md)"
-	@echo "  make clean   remove .venv and outputs/"
+	@echo "  make clean   remove .venv, .venv-nightly and outputs/"
 
 setup:
-	@bash scripts/setup.sh
+	@MANISKILL=$(MANISKILL) bash scripts/setup.sh
 
 test: setup
 	$(VENV)/bin/python -m pytest -q tests $(PYTEST_ARGS)
+
+test-nightly:
+	@$(MAKE) --no-print-directory test MANISKILL=nightly
+
+lint: setup
+	@rc=0; $(VENV)/bin/ruff check . || rc=1; $(VENV)/bin/ruff format --check . || rc=1; exit $$rc
 
 demo: setup
 	$(VENV)/bin/maniskill-torchrl demo $(DEMO_ARGS)
@@ -28,7 +42,7 @@ bench: setup
 	$(VENV)/bin/python benchmarks/run_all.py
 
 clean:
-	rm -rf $(VENV) outputs/
+	rm -rf .venv .venv-nightly outputs/
 
 gpu-kit:
 	@bash scripts/gpu_kit.sh

@@ -12,11 +12,30 @@ The public names are imported on first use, so ``import maniskill_torchrl.wrappe
 from __future__ import annotations
 
 import importlib
+import importlib.util
 from typing import TYPE_CHECKING, Any
 
-from maniskill_torchrl._mp import prefer_spawn
-
 __version__ = "0.1.0"
+
+
+def _require_maniskill() -> None:
+    # ManiSkill is an extra (release) or the user's own install (nightly): one clear error when neither is there.
+    try:
+        found = importlib.util.find_spec("mani_skill") is not None
+    except (ImportError, ValueError):
+        found = False
+    if not found:
+        raise ImportError(
+            "maniskill_torchrl needs ManiSkill 3 (the `mani_skill` package), which is not installed. "
+            'Install the release with `pip install "maniskill-torchrl[maniskill]"` (mani-skill 3.0.x), '
+            "or the nightly with `pip install mani-skill-nightly`; both provide `mani_skill`.",
+            name="mani_skill",
+        )
+
+
+_require_maniskill()
+
+from maniskill_torchrl._mp import prefer_spawn  # noqa: E402
 
 # As ``import torchrl`` does: without it, the first process any library starts (gymnasium's
 # AsyncVectorEnv, say) pins "fork", and a TorchRL ParallelEnv built later in this process forks

@@ -5,9 +5,12 @@
 #
 # 1. Creates .venv at the repo root (python3 -m venv) if missing.
 # 2. Installs torch==2.13.0 (pinned; the CPU wheel comes from the pip
-#    config's find-links), then `pip install -e ".[test,demo,distributed]"`.
+#    config's find-links), then `pip install -e ".[test,demo,distributed,maniskill]"`
+#    (the `maniskill` extra: the ManiSkill 3.0.x release).
 #    The installed torch is passed to pip as a constraint, so pip can never
 #    swap it for an unpinned (multi-GB CUDA) torch.
+#    MANISKILL=nightly (make test MANISKILL=nightly) builds .venv-nightly instead,
+#    with `mani-skill-nightly` in place of the extra (the same `mani_skill` package).
 # 3. Checks that SAPIEN finds a Vulkan device (ManiSkill 3 needs one even for
 #    state observations). On Debian bookworm as root it installs Mesa
 #    lavapipe from bookworm-backports when none is found.
@@ -22,16 +25,17 @@
 #   MANISKILL_TORCHRL_NO_APT=1         never touch apt; just print instructions
 #   MANISKILL_TORCHRL_FORCE_VULKAN_PROBE=1   ignore the cached Vulkan probe
 #   PYTHON=python3.X                   interpreter used to create .venv
+#   MANISKILL=release|nightly          which ManiSkill: the release (.venv, default) or
+#                                      mani-skill-nightly (.venv-nightly)
+#   MANISKILL_NIGHTLY_SPEC=...         the nightly requirement (default below)
 set -euo pipefail
 
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 
-VENV=.venv
-PY="$VENV/bin/python"
-STAMP="$VENV/.setup-stamp"
-VULKAN_STAMP="$VENV/.vulkan-ok"
 TORCH_PIN="torch==2.13.0"
-EXTRAS="test,demo,distributed"   # part of the stamp: changing it reinstalls
+# Both are part of the stamp (this script's hash): changing them reinstalls.
+EXTRAS="test,demo,distributed"
+NIGHTLY_SPEC="${MANISKILL_NIGHTLY_SPEC:-mani-skill-nightly>=2026.8,<2026.9}"
 
 log() { echo "setup: $*"; }
 # pip, minus the noise about file:// index locations that don't exist here.
@@ -41,6 +45,15 @@ pip_q() {
 }
 die() { echo "setup: ERROR: $*" >&2; exit 1; }
 
+case "${MANISKILL:-release}" in
+    release) VENV=.venv; EXTRAS="$EXTRAS,maniskill"; MANISKILL_REQ=() ;;
+    nightly) VENV=.venv-nightly; MANISKILL_REQ=("$NIGHTLY_SPEC") ;;
+    *) die "MANISKILL=${MANISKILL} is neither 'release' nor 'nightly'" ;;
+esac
+PY="$VENV/bin/python"
+STAMP="$VENV/.setup-stamp"
+VULKAN_STAMP="$VENV/.vulkan-ok"
+
 torch_version() { "$PY" -c 'import importlib.metadata as m; print(m.version("torch"))'; }
 
 # ---------------------------------------------------------------- venv + pip
@@ -49,7 +62,7 @@ if [[ ! -x "$PY" ]]; then
     "${PYTHON:-python3}" -m venv "$VENV"
 fi
 
-want_hash="$(sha256sum pyproject.toml scripts/setup.sh | sha256sum | cut -d' ' -f1)"
+want_hash="$( (sha256sum pyproject.toml scripts/setup.sh; echo "${MANISKILL_REQ[*]:-}") | sha256sum | cut -d' ' -f1)"
 have_hash="$(cat "$STAMP" 2>/dev/null || true)"
 
 if [[ "$want_hash" == "$have_hash" ]]; then
@@ -71,8 +84,15 @@ else
     trap 'rm -f "$constraints"' EXIT
     echo "torch==$(torch_version)" >"$constraints"
 
-    log "installing maniskill_torchrl (editable, extras: $EXTRAS)"
-    pip_q install -c "$constraints" -e ".[$EXTRAS]"
+    log "installing maniskill_torchrl (editable, extras: $EXTRAS) ${MANISKILL_REQ[*]:-}"
+    pip_q install -c "$constraints" -e ".[$EXTRAS]" ${MANISKILL_REQ[@]+"${MANISKILL_REQ[@]}"}
+    # Exactly one ManiSkill distribution: the release and the nightly install the same files.
+    "$PY" - <<'EOF' || die "expected exactly one of mani-skill / mani-skill-nightly in $VENV (see above); remove $VENV and re-run"
+import importlib.metadata as m, sys
+have = [f"{d} {m.version(d)}" for d in ("mani-skill", "mani-skill-nightly") if list(m.distributions(name=d))]
+print("setup: ManiSkill:", ", ".join(have) or "none")
+sys.exit(len(have) != 1)
+EOF
     echo "$want_hash" >"$STAMP"
     pip_done=1
 fi
