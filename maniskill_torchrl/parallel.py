@@ -2,12 +2,11 @@
 
 :class:`ParallelEnv` is TorchRL's :class:`torchrl.envs.ParallelEnv` with four changes, each
 found by profiling ``Collector(ParallelEnv(N, ManiSkillEnv + CPUUnbatch))`` on 2 cores
-(``benchmarks/bench_collection.py``; ``benchmarks/RESULTS.md`` has the figures). Together
-they took ``Collector(ParallelEnv(2, ...))`` from 0.44x to 0.64x of the frames/s of
-gymnasium's ``AsyncVectorEnv`` of ManiSkill's ``CPUGymWrapper`` there; the rest of the gap is
-TorchRL's per-step work in the collector, the ``ParallelEnv`` and the worker (~2 ms per
-step against ~0.6 ms for gymnasium, on the critical path of every synchronous step), which no
-setting removes. For speed, prefer the batched env ``ManiSkillEnv(id, num_envs=N)`` or
+(``benchmarks/bench_collection.py``; the figures are in ``benchmarks/RESULTS.md``,
+"Collection"). The rest of the gap to gymnasium's ``AsyncVectorEnv`` of ManiSkill's
+``CPUGymWrapper`` is TorchRL's per-step work in the collector, the ``ParallelEnv`` and the
+worker, on the critical path of every synchronous step, which no setting removes. For speed,
+prefer the batched env ``ManiSkillEnv(id, num_envs=N)`` or
 ``Collector(make_env, backend="process", num_collectors=N)``.
 
 1. **Waiting for the workers sleeps instead of spinning.** TorchRL 0.14 waits for a step's
@@ -22,8 +21,7 @@ setting removes. For speed, prefer the batched env ``ManiSkillEnv(id, num_envs=N
    blocks on the pipes already and is left as it is.
 2. **Workers run under Linux's ``SCHED_BATCH`` policy** when the parent sleeps
    (``batch_workers``, see :func:`set_batch_policy`): a woken worker no longer preempts the
-   parent before it has sent the step command to every worker (2.4 ms -> 0.2 ms per step to
-   send two commands). Not with a spinning parent: a woken batch worker placed on its core
+   parent before it has sent the step command to every worker. Not with a spinning parent: a woken batch worker placed on its core
    would wait for it.
 3. **The start method defaults to ``"spawn"``**, whatever ``multiprocessing``'s global start
    method says, unless ``mp_start_method`` is given. Python pins that global to ``"fork"`` the
@@ -35,11 +33,10 @@ setting removes. For speed, prefer the batched env ``ManiSkillEnv(id, num_envs=N
    was built in this process).
 
 Everything else (specs, seeding, ``"_reset"`` / ``"_step"`` masks, collectors, ``close``) is
-TorchRL's: the data are the same as ``torchrl.envs.ParallelEnv``'s, bit for bit. Private
-TorchRL names used, all of ``torchrl.envs.ParallelEnv`` 0.14: ``_wait_for_workers``
-(overridden), ``_start_workers`` (wrapped), and the attributes ``_use_buffers``,
-``_shm_done_flags``, ``_worker_indices``, ``_workers``, ``_mp_start_method``,
-``BATCHED_PIPE_TIMEOUT`` and ``_shutdown_workers`` (read / called as TorchRL's own wait does).
+TorchRL's: the data are the same as ``torchrl.envs.ParallelEnv``'s, bit for bit. It overrides
+two private hooks of ``torchrl.envs.ParallelEnv`` 0.14, ``_wait_for_workers`` and
+``_start_workers`` (wrapped); the private attributes it reads as TorchRL's own wait does go
+through :mod:`maniskill_torchrl._private`.
 
 Examples:
     >>> from torchrl.envs import TransformedEnv
@@ -62,6 +59,7 @@ from typing import Any, Literal
 
 from torchrl.envs import ParallelEnv as _TorchRLParallelEnv
 
+from maniskill_torchrl import _private
 from maniskill_torchrl._mp import check_start_method
 
 __all__ = ["ParallelEnv", "set_batch_policy", "usable_cores"]
@@ -83,8 +81,8 @@ def set_batch_policy(pid: int) -> bool:
     ``SCHED_BATCH`` keeps the normal fair share (same nice weight) but a thread that wakes up
     does not preempt the running one. A ParallelEnv parent sends its step command to each worker
     in turn through a pipe; pipe wake-ups are "synchronous" hints, so the kernel tends to run the
-    woken worker on the parent's core at once, and the parent waits a whole time slice
-    (~1 ms per worker measured on 2 cores) before it can send the next command. With the workers
+    woken worker on the parent's core at once, and the parent waits a whole time slice before
+    it can send the next command (``benchmarks/RESULTS.md``, "Collection"). With the workers
     as batch threads, the parent finishes sending first. Unprivileged; ignores threads that exit
     meanwhile.
     """
@@ -175,18 +173,18 @@ class ParallelEnv(_TorchRLParallelEnv):
         return "sleep" if self._sleeps else "spin"
 
     def _start_workers(self) -> None:
-        check_start_method(self._mp_start_method)
+        check_start_method(_private.start_method(self))
         super()._start_workers()
         if self._batch_workers:
-            for worker in self._workers:
+            for worker in _private.workers(self):
                 set_batch_policy(worker.pid)
 
     def _wait_for_workers(self, workers_range) -> None:
-        if not (self._sleeps and self._use_buffers):
+        if not (self._sleeps and _private.uses_buffers(self)):
             return super()._wait_for_workers(workers_range)
         # The same shared-memory flags TorchRL's wait spins on (set to 1 by a worker when its
         # step / reset is written), polled between sleeps.
-        flags, indices = self._shm_done_flags, self._worker_indices
+        flags, indices = _private.done_flags(self)
         pending = list(workers_range)
         t0 = time.perf_counter()
         first = _FIRST_SLEEP_SHARE * min(self._recent_waits, default=0.0)
@@ -215,11 +213,12 @@ class ParallelEnv(_TorchRLParallelEnv):
                 f"Failed to run all workers within the {timeout} sec time limit. This "
                 "threshold can be increased via the BATCHED_PIPE_TIMEOUT env variable."
             )
+        flags, indices = _private.done_flags(self)
         for i in pending:
-            worker = self._workers[i]
-            if not worker.is_alive() and not self._shm_done_flags[self._worker_indices[i]]:
+            worker = _private.workers(self)[i]
+            if not worker.is_alive() and not flags[indices[i]]:
                 try:
-                    self._shutdown_workers()
+                    _private.shutdown_workers(self)
                 except Exception:  # noqa: BLE001 - the dead worker is the error to report
                     pass
                 raise RuntimeError(f"Cannot proceed, worker {i} dead (exit code {worker.exitcode}).")
