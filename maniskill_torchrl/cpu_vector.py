@@ -194,7 +194,7 @@ class CPUVectorEnv:
 
     gpu_sim_enabled = False
 
-    def __init__(self, env_id: str, num_envs: int, *, context: str = "forkserver", **maniskill_kwargs) -> None:
+    def __init__(self, env_id: str, num_envs: int, *, context: str = "forkserver", **maniskill_kwargs: Any) -> None:
         if context == "fork":
             raise ValueError(
                 "CPUVectorEnv(context='fork') hangs once SAPIEN is loaded in this process; "
@@ -234,7 +234,9 @@ class CPUVectorEnv:
         truncated = torch.tensor(buf[_TRUNCATED])
         return obs, reward, terminated, truncated, info
 
-    def step(self, action: torch.Tensor | Mapping[str, torch.Tensor]):
+    def step(
+        self, action: torch.Tensor | Mapping[str, torch.Tensor]
+    ) -> tuple[Any, torch.Tensor, torch.Tensor, torch.Tensor, dict]:
         try:
             self._vec.step_async(_to_numpy(action))
             self._vec.step_wait()
@@ -242,7 +244,7 @@ class CPUVectorEnv:
             raise self._worker_died("step") from err
         return self._read()
 
-    def reset(self, *, seed: int | list[int] | None = None, options: dict | None = None):
+    def reset(self, *, seed: int | list[int] | None = None, options: dict | None = None) -> tuple[Any, dict]:
         options = dict(options) if options else {}
         env_idx = options.pop("env_idx", None)
         if env_idx is not None:
