@@ -56,17 +56,13 @@ def make_env(env_id: str = ENV_ID, num_envs: int = 1, max_episode_steps: int | N
     a stand-in for a worker that segfaults or is OOM-killed, to show the error it gives."""
     warnings.filterwarnings("ignore")
     logging.getLogger("mani_skill").setLevel(logging.ERROR)
-    from torchrl.envs import Compose, TransformedEnv
-
-    from maniskill_torchrl import CPUUnbatch, EpisodeMetrics, ManiSkillEnv
+    from maniskill_torchrl.pipeline import make_env as make_pipeline
 
     kwargs = {"obs_mode": "state"}
     if max_episode_steps is not None:
         kwargs["max_episode_steps"] = max_episode_steps
-    if num_envs == 1:
-        env = TransformedEnv(ManiSkillEnv(env_id, **kwargs), Compose(CPUUnbatch(), EpisodeMetrics()))
-    else:
-        env = TransformedEnv(ManiSkillEnv(env_id, num_envs=num_envs, **kwargs), EpisodeMetrics())
+    # num_envs=None: ManiSkillEnv -> CPUUnbatch -> EpisodeMetrics; N: ManiSkillEnv(num_envs=N) -> EpisodeMetrics
+    env = make_pipeline(env_id, num_envs=None if num_envs == 1 else num_envs, **kwargs)
     if crash_after is not None:
         env.append_transform(_CrashAfter(crash_after))
     return env

@@ -51,13 +51,13 @@ from torch import nn
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
-from torchrl.envs import Compose, EnvBase, ParallelEnv, SerialEnv, TransformedEnv
+from torchrl.envs import EnvBase, ParallelEnv, SerialEnv
 from torchrl.envs.utils import ExplorationType, RandomPolicy, set_exploration_type
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
-from maniskill_torchrl import ActionRepeat, CPUUnbatch, EpisodeMetrics, IgnoreTerminations, ManiSkillEnv
+from maniskill_torchrl.pipeline import make_env as make_pipeline
 
 CHECKPOINT_FORMAT = "maniskill_torchrl.ppo.v1"
 
@@ -72,13 +72,7 @@ def make_cpu_env(env_id: str, repeat: int, env_kwargs: dict[str, Any]) -> EnvBas
     ActionRepeat sits in the worker (no inter-process round trip per inner step);
     EpisodeMetrics after it, so episode lengths count agent steps.
     """
-    transforms = [CPUUnbatch()]
-    if repeat > 1:
-        transforms.append(ActionRepeat(repeat))
-    transforms.append(EpisodeMetrics())
-    return TransformedEnv(
-        ManiSkillEnv(env_id, sim_backend="physx_cpu", **env_kwargs), Compose(*transforms)
-    )
+    return make_pipeline(env_id, repeat=repeat, sim_backend="physx_cpu", **env_kwargs)
 
 
 def _env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
@@ -93,13 +87,8 @@ def make_env(args: argparse.Namespace, device: torch.device) -> EnvBase:
     env_kwargs = _env_kwargs(args)
     if args.vec == "batched":
         # A batched TorchRL env on either sim (one GPU simulator, or one CPU worker per env): no CPUUnbatch.
-        transforms = []
-        if args.repeat > 1:
-            transforms.append(ActionRepeat(args.repeat))
-        transforms.append(EpisodeMetrics())
         backend = "gpu" if device.type == "cuda" else "physx_cpu"
-        base = ManiSkillEnv(args.env_id, num_envs=args.num_envs, sim_backend=backend, **env_kwargs)
-        return TransformedEnv(base, Compose(*transforms))
+        return make_pipeline(args.env_id, num_envs=args.num_envs, repeat=args.repeat, sim_backend=backend, **env_kwargs)
     make = functools.partial(make_cpu_env, args.env_id, args.repeat, env_kwargs)
     if args.vec == "serial":
         return SerialEnv(args.num_envs, make)
@@ -122,13 +111,10 @@ def _time_limit(args: argparse.Namespace) -> int:
 def make_eval_env(env_id: str, num_envs: int, device: torch.device, repeat: int = 1, **env_kwargs: Any) -> EnvBase:
     """The evaluation env, as ManiSkill's PPO baseline evaluates: episodes run to the time limit
     (``IgnoreTerminations``), ``EpisodeMetrics`` reports success_once / success_at_end / return."""
-    transforms: list = [IgnoreTerminations()]
-    if repeat > 1:
-        transforms.append(ActionRepeat(repeat))
-    transforms.append(EpisodeMetrics())
     backend = "gpu" if device.type == "cuda" else "physx_cpu"
-    base = ManiSkillEnv(env_id, num_envs=num_envs, sim_backend=backend, **env_kwargs)
-    return TransformedEnv(base, Compose(*transforms))
+    return make_pipeline(
+        env_id, num_envs=num_envs, repeat=repeat, ignore_terminations=True, sim_backend=backend, **env_kwargs
+    )
 
 
 @torch.no_grad()

@@ -1,6 +1,6 @@
 """ManiSkill/SAPIEN helpers with no TorchRL import (the gym shim uses them too): the ManiSkill
-env under gym wrappers, its render frame shape, the registered task ids, and the GPU sim's
-PhysX library."""
+env under gym wrappers, its render frame shape, the registered task ids, log filters, and the
+GPU sim's PhysX library."""
 from __future__ import annotations
 
 import zipfile
@@ -10,11 +10,36 @@ from typing import Any
 __all__ = [
     "enable_physx_gpu",
     "maniskill_base_env",
+    "quiet_maniskill",
     "registered_env_ids",
     "render_frame_shape",
     "similar_env_ids",
     "wrapper_attr",
 ]
+
+
+def quiet_maniskill() -> None:
+    """Silences messages that say nothing actionable on a CPU-only machine.
+
+    ManiSkill warns "CUDA device was not found ... Rendering might be disabled"
+    for every env although SAPIEN then renders on the CPU (lavapipe) fine.
+    """
+    import warnings
+
+    warnings.filterwarnings("ignore", message=".*precision lowered by casting.*")
+    warnings.filterwarnings("ignore", module="mani_skill")
+
+    from mani_skill.utils.logging_utils import logger
+
+    if not any(isinstance(f, _NoCudaRenderWarning) for f in logger.filters):
+        logger.addFilter(_NoCudaRenderWarning())
+
+
+class _NoCudaRenderWarning:
+    """A logging filter dropping ManiSkill's no-CUDA render-device warning only."""
+
+    def filter(self, record) -> bool:
+        return "CUDA device was not found" not in record.getMessage()
 
 
 def registered_env_ids() -> Any:

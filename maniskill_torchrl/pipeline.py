@@ -1,0 +1,76 @@
+"""The one recipe that stacks the library's transforms on a ManiSkill env.
+
+The CLI demo, the examples (PPO training and evaluation, Ray) and the README build
+their envs with :func:`make_env`, so the order of the transforms is written once:
+``ManiSkillEnv [-> CPUUnbatch] [-> IgnoreTerminations] [-> ActionRepeat] [-> EpisodeMetrics]``.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+from torchrl.envs import Compose, TransformedEnv
+
+from maniskill_torchrl.env import ManiSkillEnv
+from maniskill_torchrl.transforms import ActionRepeat, CPUUnbatch, EpisodeMetrics, IgnoreTerminations
+
+__all__ = ["make_env"]
+
+
+def make_env(
+    env_id: str,
+    *,
+    num_envs: int | None = None,
+    repeat: int = 1,
+    ignore_terminations: bool = False,
+    metrics: bool = True,
+    **maniskill_kwargs: Any,
+) -> TransformedEnv:
+    """A ManiSkill task with the library's transforms, in their one sensible order.
+
+    - ``num_envs=None``: one CPU-sim env made unbatched (``CPUUnbatch``, batch ``[]``):
+      the worker of a ``ParallelEnv`` / ``SerialEnv``, a ``MultiSyncCollector`` or a Ray
+      collector. ``functools.partial(make_env, env_id, ...)`` pickles into worker processes.
+    - ``num_envs=N``: ``ManiSkillEnv(env_id, num_envs=N)``, batch ``[N]`` (one GPU simulator
+      with ``sim_backend="gpu"``, one worker process per env on the CPU sim).
+
+    Then ``IgnoreTerminations`` (episodes run to the time limit, as ManiSkill's evaluation
+    does), ``ActionRepeat(repeat)`` where ``repeat > 1`` (inside the worker: no round trip
+    per inner step) and ``EpisodeMetrics`` last, so that episode lengths count agent steps
+    and repeated rewards arrive summed.
+
+    Args:
+        env_id: a registered ManiSkill task, e.g. ``"PickCube-v1"``.
+        num_envs: ``None`` for one unbatched CPU env, else the batch size.
+        repeat: inner steps per agent step (``ActionRepeat``; 1: none).
+        ignore_terminations: add ``IgnoreTerminations``.
+        metrics: add ``EpisodeMetrics``.
+        **maniskill_kwargs: passed to :class:`~maniskill_torchrl.ManiSkillEnv` (``obs_mode``,
+            ``control_mode``, ``sim_backend``, ``render_mode``, ``max_episode_steps``...).
+            ``num_envs=None`` defaults ``sim_backend`` to the CPU sim.
+
+    Examples:
+        >>> from maniskill_torchrl.pipeline import make_env
+        >>> env = make_env("PickCube-v1", repeat=2, obs_mode="state")
+        >>> env.transform
+        Compose(
+            CPUUnbatch(),
+            ActionRepeat(repeat=2),
+            EpisodeMetrics())
+        >>> env.batch_size
+        torch.Size([])
+        >>> env.close()
+    """
+    transforms: list = []
+    if num_envs is None:
+        maniskill_kwargs.setdefault("sim_backend", "physx_cpu")
+        base = ManiSkillEnv(env_id, **maniskill_kwargs)
+        transforms.append(CPUUnbatch())
+    else:
+        base = ManiSkillEnv(env_id, num_envs=num_envs, **maniskill_kwargs)
+    if ignore_terminations:
+        transforms.append(IgnoreTerminations())
+    if repeat != 1:
+        transforms.append(ActionRepeat(repeat))
+    if metrics:
+        transforms.append(EpisodeMetrics())
+    return TransformedEnv(base, Compose(*transforms))
