@@ -26,7 +26,7 @@ from torchrl.envs import (
 )
 from torchrl.envs.utils import check_env_specs, step_mdp
 
-from conftest import make_gym_env, random_actions
+from helpers import assert_same, make_gym_env, random_actions
 from maniskill_torchrl import ActionRepeat, ManiSkillEnv
 from maniskill_torchrl.transforms import ActionRepeat as ActionRepeatFromTransforms
 from toy_env import ToyEnv, serial_toy_env, toy_nested, toy_reward
@@ -56,24 +56,19 @@ def _leaves(d, prefix=()):
             yield prefix + (k,), v
 
 
-def _assert_same(got: torch.Tensor, want: torch.Tensor, what: str) -> None:
-    assert got.dtype == want.dtype, (what, got.dtype, want.dtype)
-    assert torch.equal(got.reshape(want.shape), want), (what, got, want)
-
-
 def _assert_obs_infos(nxt, obs, info, unbatched: bool) -> None:
     """``nxt`` (a TensorDict) holds ManiSkill's ``obs`` and tensor ``info`` bit for bit."""
     sq = (lambda x: x.squeeze(0)) if unbatched else (lambda x: x)
     if isinstance(obs, dict):
         for key, val in _leaves(obs):
-            _assert_same(nxt.get(key), sq(val), key)
+            assert_same(nxt.get(key), sq(val), key)
     else:
-        _assert_same(nxt.get("observation"), sq(obs), "observation")
+        assert_same(nxt.get("observation"), sq(obs), "observation")
     n_info = 0
     for key, val in info.items():
         if isinstance(val, torch.Tensor):
             td_key = key if key in nxt.keys() else f"info_{key}"
-            _assert_same(nxt.get(td_key), sq(val), key)
+            assert_same(nxt.get(td_key), sq(val), key)
             n_info += 1
     assert n_info >= 2  # elapsed_steps and success / fail at least
 
@@ -99,7 +94,7 @@ def _compare_with_maniskill(gym_env, ours, repeat, seeds, actions, unbatched=Fal
             for key, want in (("reward", rew), ("terminated", term), ("truncated", trunc), ("done", term | trunc)):
                 got = nxt.get(key)
                 assert got.shape == ((1,) if unbatched else (want.shape[0], 1)), (key, got.shape)
-                _assert_same(got, want.reshape(got.shape), key)
+                assert_same(got, want.reshape(got.shape), key)
             if (term | trunc).any():
                 lengths.append(int(info["elapsed_steps"].reshape(-1)[0]))
                 break
@@ -283,7 +278,7 @@ def test_matches_per_env_reference(partial, sc):
             td = step_mdp(out)
         nxt = out.get("next")
         for key, want in expected.items():
-            _assert_same(nxt.get(key), want, key)
+            assert_same(nxt.get(key), want, key)
         total_taken = [a + b for a, b in zip(total_taken, taken)]
         # Early stop and skipping, read on the toy's own counters.
         assert _step_counts(env) == state["count"]

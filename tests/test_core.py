@@ -12,13 +12,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from tensordict import TensorDict
 
+from helpers import bits
 from maniskill_torchrl.episode_stats import EpisodeStats
 from maniskill_torchrl.masked_merge import any_done, merge_step
 from maniskill_torchrl.numpy_sum import pairwise_sum
-
-
-def _bits(x: np.float32) -> bytes:
-    return np.asarray(x, dtype=np.float32).tobytes()
 
 
 @pytest.mark.parametrize("n", [0, 1, 7, 8, 9, 15, 16, 127, 128, 129, 130, 255, 256, 300, 1001])
@@ -26,7 +23,7 @@ def test_pairwise_sum_matches_numpy(n):
     x = torch.randn(3, n) * torch.rand(3, 1) * 10
     ours = pairwise_sum(x)
     for row in range(3):
-        assert _bits(ours[row].numpy()) == _bits(np.sum(x[row].numpy()))
+        assert bits(ours[row].numpy(), np.float32) == bits(np.sum(x[row].numpy()), np.float32)
 
 
 @pytest.mark.parametrize(
@@ -72,9 +69,9 @@ def test_episode_return_bit_exact_with_resets(batch, device_path):
             success_once[i] |= succ[i]
             fail_once[i] |= fail[i]
             ref = np.sum(rewards[i])
-            assert _bits(ep["return"][i].numpy()) == _bits(ref), (step, i, len(rewards[i]))
+            assert bits(ep["return"][i].numpy(), np.float32) == bits(ref, np.float32), (step, i, len(rewards[i]))
             assert ep["episode_len"][i].item() == len(rewards[i])
-            assert _bits(ep["reward"][i].numpy()) == _bits(ref / len(rewards[i]))
+            assert bits(ep["reward"][i].numpy(), np.float32) == bits(ref / len(rewards[i]), np.float32)
             assert ep["success_once"][i].item() == success_once[i]
             assert ep["fail_once"][i].item() == fail_once[i]
             assert ep["success_at_end"][i].item() == succ[i]

@@ -15,7 +15,7 @@ from torchrl.data import Bounded
 from torchrl.envs import Compose, ParallelEnv, RewardSum, StepCounter, TransformedEnv
 from torchrl.envs.utils import check_env_specs, step_mdp
 
-from conftest import make_gym_env, random_actions
+from helpers import make_gym_env, random_actions
 from maniskill_torchrl import (
     CPUUnbatch,
     EpisodeMetrics,

@@ -29,7 +29,7 @@ from torchrl.data import Bounded
 from torchrl.envs import GymWrapper, SerialEnv
 from torchrl.envs.utils import check_env_specs, step_mdp
 
-from conftest import make_gym_env, random_actions
+from helpers import assert_same, clone_tree, make_gym_env, random_actions, tensor_infos
 from maniskill_torchrl import ManiSkillEnv, ManiSkillWrapper
 
 pytestmark = pytest.mark.usefixtures("torch_single_thread")
@@ -113,29 +113,11 @@ def as_td_action(action):
     return action
 
 
-def clone_tree(x):
-    if isinstance(x, dict):
-        return {k: clone_tree(v) for k, v in x.items()}
-    if isinstance(x, torch.Tensor):
-        return x.clone()
-    return x
-
-
 def obs_as_td(obs) -> TensorDictBase:
     """ManiSkill's observation as the entries ManiSkillEnv writes."""
     if isinstance(obs, dict):
         return TensorDict(obs, batch_size=[1])
     return TensorDict({"observation": obs}, batch_size=[1])
-
-
-def tensor_infos(info) -> dict:
-    return {k: v for k, v in info.items() if isinstance(v, torch.Tensor)}
-
-
-def assert_same(a: torch.Tensor, b: torch.Tensor, what: str = ""):
-    assert a.dtype == b.dtype, f"{what}: dtype {a.dtype} != {b.dtype}"
-    assert a.shape == b.shape, f"{what}: shape {tuple(a.shape)} != {tuple(b.shape)}"
-    assert torch.equal(a, b), f"{what}: values differ\n{a}\n{b}"
 
 
 def assert_obs_equal(td: TensorDictBase, obs, what: str = ""):

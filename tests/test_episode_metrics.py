@@ -11,7 +11,7 @@ from tensordict import TensorDict
 from torchrl.envs import Compose, ExcludeTransform, SerialEnv, TransformedEnv
 from torchrl.envs.utils import check_env_specs, step_mdp
 
-from conftest import make_gym_env, random_actions
+from helpers import bits, make_gym_env, random_actions
 from maniskill_torchrl import CPUUnbatch, EpisodeMetrics, IgnoreTerminations, ManiSkillEnv
 from maniskill_torchrl.transforms import EpisodeMetrics as EpisodeMetricsFromTransforms
 from toy_env import ToyEnv, serial_toy_env
@@ -35,10 +35,6 @@ def envs():
     for gym_env, env in made.values():
         gym_env.close()
         env.close()
-
-
-def _bits(x) -> bytes:
-    return np.asarray(x).tobytes()
 
 
 @pytest.mark.parametrize(
@@ -69,7 +65,7 @@ def test_same_numbers_as_cpu_gym_wrapper(envs, env_id, ignore):
             td = env.step(td)
             nxt = td["next"]
             assert np.array_equal(obs, nxt["observation"].numpy())
-            assert _bits(np.float32(reward)) == _bits(nxt["reward"].numpy()[0])
+            assert bits(np.float32(reward)) == bits(nxt["reward"].numpy()[0])
             assert bool(term) == bool(nxt["terminated"]) and bool(trunc) == bool(nxt["truncated"])
             assert bool(nxt["done"]) == bool(term or trunc)
             ours, theirs = nxt["episode"], info["episode"]
@@ -86,7 +82,7 @@ def test_same_numbers_as_cpu_gym_wrapper(envs, env_id, ignore):
                     assert int(ours[key]) == value and ours[key].dtype == torch.int64
                 else:  # float32 return / reward and bools: same dtype, same bits
                     assert ours[key].numpy().dtype == np.asarray(value).dtype, key
-                    assert _bits(ours[key].numpy()) == _bits(value), (key, ours[key], value)
+                    assert bits(ours[key].numpy()) == bits(value), (key, ours[key], value)
             if term or trunc:
                 lengths.append(int(theirs["episode_len"]))
                 break
@@ -137,7 +133,7 @@ def _assert_matches_reference(rollout: TensorDict, batch_dim_first: bool = True)
     for key, expected in ref.items():
         got = ep[key].numpy()
         assert got.dtype == expected.dtype, key
-        assert _bits(got) == _bits(expected), (key, got, expected)
+        assert bits(got) == bits(expected), (key, got, expected)
     # Root "episode" (what the policy sees): zeros right after a reset, else the last step's values.
     done = rollout["next", "done"].squeeze(-1)
     for key in ref:

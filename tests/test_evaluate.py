@@ -19,7 +19,7 @@ import pytest
 import torch
 from torch import nn
 
-from test_examples import EXAMPLES, TIMEOUT_S, run  # the subprocess helpers of the example tests
+from helpers import EXAMPLES, TIMEOUT_S, run
 
 sys.path.insert(0, str(EXAMPLES))  # as when a script there runs: ppo_checkpoint imports ppo_torchrl
 

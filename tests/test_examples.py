@@ -8,30 +8,15 @@ the whole file takes about a minute and a half; nothing here is skipped.
 from __future__ import annotations
 
 import json
-import os
-import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
+from helpers import EXAMPLES, run
 from maniskill_torchrl import cli
 
-ROOT = Path(__file__).resolve().parents[1]
-EXAMPLES = ROOT / "examples"
 BIN = Path(sys.executable).parent
-TIMEOUT_S = 300  # a hung worker fails the test instead of the session
-
-
-def run(cmd: list[str], cwd: Path) -> subprocess.CompletedProcess:
-    """Runs ``cmd`` like a user would; a failure shows its output."""
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    proc = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True, timeout=TIMEOUT_S)
-    assert proc.returncode == 0, (
-        f"{' '.join(map(str, cmd))} exited with {proc.returncode}\n"
-        f"--- stdout ---\n{proc.stdout[-4000:]}\n--- stderr ---\n{proc.stderr[-4000:]}"
-    )
-    return proc
 
 
 # ----------------------------------------------------------------------------- demo

@@ -8,7 +8,6 @@ shapes and python types recursively (:func:`assert_same`).
 from __future__ import annotations
 
 import doctest
-import struct
 from collections.abc import Callable
 
 import gymnasium as gym
@@ -22,7 +21,7 @@ from mani_skill.utils.wrappers import RecordEpisode
 
 import maniskill_torchrl.wrappers.action_repeat as action_repeat_module
 import maniskill_torchrl.wrappers.gymnasium as gymnasium_module
-from conftest import make_gym_env, random_actions
+from helpers import assert_same, make_gym_env, random_actions
 from maniskill_torchrl.episode_stats import EpisodeStats
 from maniskill_torchrl.wrappers import ActionRepeatWrapper, CPUGymWrapper
 from maniskill_torchrl.wrappers._common import np_unbatch
@@ -33,40 +32,6 @@ pytestmark = pytest.mark.filterwarnings("ignore:.*precision lowered by casting")
 
 
 # ----------------------------------------------------------------------------- comparison
-def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
-    if a.dtype.kind in "fc":
-        view = {2: np.uint16, 4: np.uint32, 8: np.uint64, 16: np.uint64}[a.dtype.itemsize // (2 if a.dtype.kind == "c" else 1)]
-        return np.array_equal(np.ascontiguousarray(a).view(view), np.ascontiguousarray(b).view(view))
-    return np.array_equal(a, b)
-
-
-def assert_same(a, b, path: str = "out") -> None:
-    """``a`` and ``b`` are the same: python types at every level, dict key order, dtypes, shapes, bits."""
-    assert type(a) is type(b), f"{path}: {type(a).__name__} vs {type(b).__name__}"
-    if isinstance(a, dict):
-        assert list(a) == list(b), f"{path}: keys {list(a)} vs {list(b)}"
-        for k in a:
-            assert_same(a[k], b[k], f"{path}[{k!r}]")
-    elif isinstance(a, (tuple, list)):
-        assert len(a) == len(b), f"{path}: len {len(a)} vs {len(b)}"
-        for i, (x, y) in enumerate(zip(a, b)):
-            assert_same(x, y, f"{path}[{i}]")
-    elif isinstance(a, torch.Tensor):
-        assert (a.dtype, a.shape, a.device) == (b.dtype, b.shape, b.device), f"{path}: {a!r} vs {b!r}"
-        assert_same(a.numpy(), b.numpy(), path)
-    elif isinstance(a, np.ndarray):
-        assert (a.dtype, a.shape) == (b.dtype, b.shape), f"{path}: {a.dtype}{a.shape} vs {b.dtype}{b.shape}"
-        if a.dtype == object:
-            for i, (x, y) in enumerate(zip(a.ravel(), b.ravel())):
-                assert_same(x, y, f"{path}.flat[{i}]")
-        else:
-            assert _same_bits(a, b), f"{path}: {a} vs {b}"
-    elif isinstance(a, np.generic):
-        assert a.dtype == b.dtype and _same_bits(np.asarray(a), np.asarray(b)), f"{path}: {a!r} vs {b!r}"
-    elif isinstance(a, float):
-        assert struct.pack("<d", a) == struct.pack("<d", b), f"{path}: {a!r} vs {b!r}"
-    else:
-        assert a == b, f"{path}: {a!r} vs {b!r}"
 
 
 def test_assert_same_is_strict():

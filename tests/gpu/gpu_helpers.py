@@ -37,6 +37,7 @@ import pytest
 import torch
 
 import mani_skill.envs  # noqa: F401  (registers the tasks)
+from helpers import assert_same, clone_tree
 
 CUDA = torch.cuda.is_available()
 # A check of the test code itself on the CPU sim (nothing about the GPU path): N > 1 envs run as
@@ -114,40 +115,11 @@ def seeds_after_set_seed(seed: int, n: int) -> list[int]:
 
 
 # ----------------------------------------------------------------------------- data
-def clone_tree(x):
-    if isinstance(x, torch.Tensor):
-        return x.clone()
-    if isinstance(x, dict):
-        return {k: clone_tree(v) for k, v in x.items()}
-    if isinstance(x, (tuple, list)):
-        return type(x)(clone_tree(v) for v in x)
-    return x
-
-
-def tensor_infos(info: dict) -> dict:
-    return {k: v for k, v in info.items() if isinstance(v, torch.Tensor)}
 
 
 def info_key(env, key: str) -> str:
     """Where ManiSkillEnv stores info ``key`` (``info_<key>`` if it collides with an observation)."""
     return dict(env._info_map).get(key, key)
-
-
-def assert_same(got: torch.Tensor, want: torch.Tensor, what: str = "") -> None:
-    """Same dtype, shape and bits; on failure says how many envs differ and shows the first."""
-    assert got.dtype == want.dtype, f"{what}: dtype {got.dtype} != {want.dtype}"
-    assert got.shape == want.shape, f"{what}: shape {tuple(got.shape)} != {tuple(want.shape)}"
-    if torch.equal(got, want):
-        return
-    diff = got != want
-    if diff.ndim > 1:
-        diff = diff.reshape(diff.shape[0], -1).any(-1)
-    envs = diff.nonzero().reshape(-1).tolist()
-    i = envs[0] if envs else 0
-    raise AssertionError(
-        f"{what}: values differ in {len(envs)} of {got.shape[0] if got.ndim else 1} envs, "
-        f"first env {i}:\n got  {got[i] if got.ndim else got}\n want {want[i] if want.ndim else want}"
-    )
 
 
 def env_idx_of(options) -> torch.Tensor | None:

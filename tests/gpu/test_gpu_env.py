@@ -33,8 +33,6 @@ from gpu_helpers import (
     TASKS,
     Recorder,
     actions,
-    assert_same,
-    clone_tree,
     env_idx_of,
     info_key,
     make_env,
@@ -43,8 +41,8 @@ from gpu_helpers import (
     seeds_after_set_seed,
     shared_env,
     swapped,
-    tensor_infos,
 )
+from helpers import assert_same, clone_tree, tensor_infos
 
 pytestmark = requires_gpu
 

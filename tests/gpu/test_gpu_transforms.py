@@ -45,16 +45,14 @@ from gpu_helpers import (
     Recorder,
     Replay,
     actions,
-    assert_same,
-    clone_tree,
     info_key,
     needs_one_gym_env,
     requires_gpu,
     seeds_after_set_seed,
     shared_env,
     swapped,
-    tensor_infos,
 )
+from helpers import assert_same, clone_tree, tensor_infos
 from maniskill_torchrl import ActionRepeat, EpisodeMetrics, IgnoreTerminations
 
 from mani_skill.utils.wrappers import ActionRepeatWrapper

@@ -1,0 +1,130 @@
+"""Helpers shared by the test files (imported as ``helpers``; pytest puts ``tests/`` on the path).
+
+- making ManiSkill envs and reproducible actions: :func:`make_gym_env`, :func:`random_actions`;
+- comparing bit for bit: :func:`assert_same`, :func:`bits`, :func:`clone_tree`, :func:`tensor_infos`;
+- running what users run as subprocesses: :func:`run`, :data:`ROOT`, :data:`EXAMPLES`, :data:`TIMEOUT_S`.
+"""
+from __future__ import annotations
+
+import os
+import struct
+import subprocess
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLES = ROOT / "examples"
+TIMEOUT_S = 300  # a hung worker fails the test instead of the session
+
+
+# ----------------------------------------------------------------------------- envs
+def make_gym_env(env_id: str = "PickCube-v1", **kwargs) -> gym.Env:
+    """A single CPU ManiSkill env made as users make it."""
+    import mani_skill.envs  # noqa: F401  (registers the tasks)
+
+    kwargs.setdefault("num_envs", 1)
+    return gym.make(env_id, **kwargs)
+
+
+def random_actions(space: gym.Space, n: int, seed: int = 0) -> list:
+    """``n`` reproducible actions (torch tensors, or dicts of them) for an unbatched action space."""
+    g = torch.Generator().manual_seed(seed)
+
+    def one(sp):
+        if isinstance(sp, gym.spaces.Dict):
+            return {k: one(v) for k, v in sp.spaces.items()}
+        low = torch.as_tensor(sp.low, dtype=torch.float32)
+        high = torch.as_tensor(sp.high, dtype=torch.float32)
+        return low + (high - low) * torch.rand(sp.shape, generator=g)
+
+    return [one(space) for _ in range(n)]
+
+
+# ----------------------------------------------------------------------------- data
+def bits(x: Any, dtype: Any = None) -> bytes:
+    """The bytes of ``x`` as a numpy array (of ``dtype`` if given): equal bytes, equal bits."""
+    return np.asarray(x, dtype=dtype).tobytes()
+
+
+def clone_tree(x: Any) -> Any:
+    """``x`` with every tensor cloned, through dicts, tuples and lists."""
+    if isinstance(x, torch.Tensor):
+        return x.clone()
+    if isinstance(x, dict):
+        return {k: clone_tree(v) for k, v in x.items()}
+    if isinstance(x, (tuple, list)):
+        return type(x)(clone_tree(v) for v in x)
+    return x
+
+
+def tensor_infos(info: dict) -> dict:
+    return {k: v for k, v in info.items() if isinstance(v, torch.Tensor)}
+
+
+def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
+    if a.dtype.kind in "fc":
+        view = {2: np.uint16, 4: np.uint32, 8: np.uint64, 16: np.uint64}[a.dtype.itemsize // (2 if a.dtype.kind == "c" else 1)]
+        return np.array_equal(np.ascontiguousarray(a).view(view), np.ascontiguousarray(b).view(view))
+    return np.array_equal(a, b)
+
+
+def _tensor_diff(got: torch.Tensor, want: torch.Tensor, what: str) -> str:
+    """How many envs (first dim) differ, and the first of them."""
+    diff = got != want
+    if diff.ndim > 1:
+        diff = diff.reshape(diff.shape[0], -1).any(-1)
+    envs = diff.nonzero().reshape(-1).tolist()
+    i = envs[0] if envs else 0
+    return (
+        f"{what}: values differ in {len(envs)} of {got.shape[0] if got.ndim else 1} envs, "
+        f"first env {i}:\n got  {got[i] if got.ndim else got}\n want {want[i] if want.ndim else want}"
+    )
+
+
+def assert_same(a: Any, b: Any, what: str = "out") -> None:
+    """``a`` and ``b`` are the same: python types at every level, dict key order, dtypes, shapes,
+    devices and bits (tensors on any device; a difference names the envs, first dim, that differ)."""
+    assert type(a) is type(b), f"{what}: {type(a).__name__} vs {type(b).__name__}"
+    if isinstance(a, dict):
+        assert list(a) == list(b), f"{what}: keys {list(a)} vs {list(b)}"
+        for k in a:
+            assert_same(a[k], b[k], f"{what}[{k!r}]")
+    elif isinstance(a, (tuple, list)):
+        assert len(a) == len(b), f"{what}: len {len(a)} vs {len(b)}"
+        for i, (x, y) in enumerate(zip(a, b)):
+            assert_same(x, y, f"{what}[{i}]")
+    elif isinstance(a, torch.Tensor):
+        assert a.dtype == b.dtype, f"{what}: dtype {a.dtype} != {b.dtype}"
+        assert a.shape == b.shape, f"{what}: shape {tuple(a.shape)} != {tuple(b.shape)}"
+        assert a.device == b.device, f"{what}: device {a.device} != {b.device}"
+        if not _same_bits(a.detach().cpu().numpy(), b.detach().cpu().numpy()):
+            raise AssertionError(_tensor_diff(a, b, what))
+    elif isinstance(a, np.ndarray):
+        assert (a.dtype, a.shape) == (b.dtype, b.shape), f"{what}: {a.dtype}{a.shape} vs {b.dtype}{b.shape}"
+        if a.dtype == object:
+            for i, (x, y) in enumerate(zip(a.ravel(), b.ravel())):
+                assert_same(x, y, f"{what}.flat[{i}]")
+        else:
+            assert _same_bits(a, b), f"{what}: {a} vs {b}"
+    elif isinstance(a, np.generic):
+        assert a.dtype == b.dtype and _same_bits(np.asarray(a), np.asarray(b)), f"{what}: {a!r} vs {b!r}"
+    elif isinstance(a, float):
+        assert struct.pack("<d", a) == struct.pack("<d", b), f"{what}: {a!r} vs {b!r}"
+    else:
+        assert a == b, f"{what}: {a!r} vs {b!r}"
+
+
+# ----------------------------------------------------------------------------- subprocesses
+def run(cmd: list[str], cwd: Path) -> subprocess.CompletedProcess:
+    """Runs ``cmd`` like a user would; a failure shows its output."""
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    proc = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True, timeout=TIMEOUT_S)
+    assert proc.returncode == 0, (
+        f"{' '.join(map(str, cmd))} exited with {proc.returncode}\n"
+        f"--- stdout ---\n{proc.stdout[-4000:]}\n--- stderr ---\n{proc.stderr[-4000:]}"
+    )
+    return proc
