@@ -4,7 +4,8 @@ One process, one ManiSkill env per scenario: ManiSkill's wrapper and ours wrap
 the same gym env (wrappers are thin, so the physics work is identical), run the
 same pre-generated actions and reset with the same seeds when an episode ends
 (PickCube-v1's 50-step limit), as a user loop does. Each round starts from the
-same seeded reset (untimed) and runs every contender once, in alternating order;
+same seeded reset (untimed) and runs every contender once, in rotating order
+(``common.interleave``);
 a ``raw`` loop on the gym env itself is timed alongside for the absolute overhead.
 
 On a shared machine wall time swings by tens of percent from round to round, so
@@ -27,19 +28,15 @@ Run: ``python benchmarks/bench_wrappers.py [--rounds 30] [--steps 100] [--json o
 from __future__ import annotations
 
 import argparse
-import gc
 import os
 import statistics
 import sys
-import time
 import warnings
-from dataclasses import dataclass, field
 
-import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from common import Contender, machine_line, make_actions, save_json  # noqa: E402
+from common import Contender, Result, interleave, machine_line, make_actions, paired_ratio, save_json  # noqa: E402
 
 warnings.filterwarnings("ignore")
 
@@ -75,51 +72,23 @@ def _loop_batched(env, actions, seeds):
     return run
 
 
-@dataclass
-class Times:
-    wall: list[float] = field(default_factory=list)
-    cpu: list[float] = field(default_factory=list)
-
-
-def interleave_clocks(contenders: list[Contender], rounds: int, warmup: int) -> dict[str, Times]:
-    """Round-robin (alternating order) timing of each contender, wall and process CPU time per unit."""
-    out = {c.name: Times() for c in contenders}
-    for r in range(warmup + rounds):
-        order = contenders if r % 2 == 0 else contenders[::-1]
-        for c in order:
-            c.setup()
-            gc.collect()
-            w0, c0 = time.perf_counter(), time.process_time()
-            n = c.run()
-            w1, c1 = time.perf_counter(), time.process_time()
-            if r >= warmup:
-                out[c.name].wall.append((w1 - w0) / n)
-                out[c.name].cpu.append((c1 - c0) / n)
-    return out
-
-
-def paired_ratio(times: dict[str, Times], name: str, base: str, clock: str = "cpu") -> float:
-    """Median over rounds of the per-round ratio ``name / base``."""
-    return statistics.median(x / y for x, y in zip(getattr(times[name], clock), getattr(times[base], clock)))
-
-
-def table(times: dict[str, Times], base: str = "ManiSkill") -> str:
+def table(times: dict[str, Result], base: str = "ManiSkill") -> str:
     rows = [
         "| contender | median CPU us/step | median wall us/step | ratio to ManiSkill (paired CPU) "
         "| ratio (paired wall) | ratio of median CPU |",
         "|---|---:|---:|---:|---:|---:|",
     ]
     for name, t in times.items():
-        med_cpu = statistics.median(t.cpu)
+        med_cpu = statistics.median(t.per_unit_cpu)
         rows.append(
-            f"| {name} | {1e6 * med_cpu:.1f} | {1e6 * statistics.median(t.wall):.1f} | "
+            f"| {name} | {1e6 * med_cpu:.1f} | {1e6 * statistics.median(t.per_unit_wall):.1f} | "
             f"{paired_ratio(times, name, base):.3f}x | {paired_ratio(times, name, base, 'wall'):.3f}x | "
-            f"{med_cpu / statistics.median(times[base].cpu):.3f}x |"
+            f"{med_cpu / statistics.median(times[base].per_unit_cpu):.3f}x |"
         )
     return "\n".join(rows)
 
 
-def scenario(kind: str, steps: int, rounds: int, warmup: int, **kwargs) -> dict[str, Times]:
+def scenario(kind: str, steps: int, rounds: int, warmup: int, **kwargs) -> dict[str, Result]:
     import gymnasium as gym
     import mani_skill.envs  # noqa: F401
     from mani_skill.utils import wrappers as ms_wrappers
@@ -150,7 +119,7 @@ def scenario(kind: str, steps: int, rounds: int, warmup: int, **kwargs) -> dict[
     ]
     if kind == "cpu":  # the same physics without any wrapper (ActionRepeat's raw work is 2-3 steps)
         contenders.append(Contender("raw env (no wrapper)", _loop_batched(env, raw_actions, seeds), setup))
-    res = interleave_clocks(contenders, rounds=rounds, warmup=warmup)
+    res = interleave(contenders, rounds=rounds, warmup=warmup, clock="cpu")
     env.close()
     return res
 
@@ -187,9 +156,9 @@ def main(argv=None) -> int:
         print(f"\n### {name}\n")
         print(table(res))
         r = paired_ratio(res, "maniskill_torchrl", "ManiSkill")
-        diff = statistics.median(res["maniskill_torchrl"].cpu) - statistics.median(res["ManiSkill"].cpu)
+        diff = res["maniskill_torchrl"].median - res["ManiSkill"].median  # the CPU clock scores
         summary.append((name, r, 1e6 * diff))
-        payload[name] = {k: {"wall_s": v.wall, "cpu_s": v.cpu} for k, v in res.items()}
+        payload[name] = {k: {"wall_s": v.per_unit_wall, "cpu_s": v.per_unit_cpu} for k, v in res.items()}
 
     print("\n| shim class vs ManiSkill's | ratio (median of paired CPU-time ratios) | CPU us/step difference | target |")
     print("|---|---:|---:|---|")

@@ -58,6 +58,7 @@ __all__ = [
     "interleave",
     "report",
     "ratio",
+    "paired_ratio",
     "machine_info",
     "machine_line",
     "save_json",
@@ -190,6 +191,13 @@ def interleave(
 def ratio(results: dict[str, Result], name: str, baseline: str) -> float:
     """Median time per unit of ``name`` over that of ``baseline``."""
     return results[name].median / results[baseline].median
+
+
+def paired_ratio(results: dict[str, Result], name: str, baseline: str, clock: str = "cpu") -> float:
+    """Median over rounds of the per-round ratio ``name / baseline`` on ``clock`` (``"cpu"`` or ``"wall"``):
+    adjacent runs see the same machine state, so this ratio swings less than the ratio of medians."""
+    attr = "per_unit_cpu" if clock == "cpu" else "per_unit_wall"
+    return statistics.median(x / y for x, y in zip(getattr(results[name], attr), getattr(results[baseline], attr)))
 
 
 def report(
