@@ -21,8 +21,8 @@ prefer the batched env ``ManiSkillEnv(id, num_envs=N)`` or
    blocks on the pipes already and is left as it is.
 2. **Workers run under Linux's ``SCHED_BATCH`` policy** when the parent sleeps
    (``batch_workers``, see :func:`set_batch_policy`): a woken worker no longer preempts the
-   parent before it has sent the step command to every worker. Not with a spinning parent: a woken batch worker placed on its core
-   would wait for it.
+   parent before it has sent the step command to every worker. Not with a spinning parent: a
+   woken batch worker placed on its core would wait for it.
 3. **The start method defaults to ``"spawn"``**, whatever ``multiprocessing``'s global start
    method says, unless ``mp_start_method`` is given. Python pins that global to ``"fork"`` the
    first time any process starts (gymnasium's ``AsyncVectorEnv(context="forkserver")``
