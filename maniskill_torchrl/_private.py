@@ -11,6 +11,8 @@ and must not import TorchRL); the TorchRL ones on first use.
 - :func:`entries`: ``TensorDict._tensordict``, the top-level dict of a TensorDict.
 - :func:`has_names`: ``TensorDictBase._has_names()``, whether it has dim names.
 - :func:`fast_apply`: ``TensorDictBase._fast_apply``, ``apply`` without the checks.
+- :func:`env_step`: ``EnvBase._step``, one step without ``EnvBase.step``'s checks and
+  bookkeeping (``ActionRepeat``'s inner steps).
 - :func:`complete_done`: ``EnvBase._complete_done``, fills missing done entries
   as ``TransformedEnv`` does.
 - ``EnvWrapper`` (``torchrl.envs.common._EnvWrapper``) and ``classproperty``
@@ -33,6 +35,7 @@ __all__ = [
     "complete_done",
     "done_flags",
     "entries",
+    "env_step",
     "fast_apply",
     "has_names",
     "new_tensordict",
@@ -61,6 +64,11 @@ def fast_apply(td: TensorDictBase, fn: Callable, *others: TensorDictBase, **kwar
 
 
 # ---------------------------------------------------------------------- torchrl
+def env_step(env: Any, td: TensorDictBase) -> TensorDictBase:
+    """``env._step(td)``: the env's own step, returning the ``"next"`` data."""
+    return env._step(td)
+
+
 def complete_done(env: Any, td: TensorDictBase) -> None:
     """Fills the done entries ``td`` lacks from those it has, as ``TransformedEnv._step`` does."""
     env._complete_done(env.full_done_spec, td)

@@ -6,7 +6,7 @@ from tensordict import TensorDictBase
 from torchrl.envs import Compose, EnvBase, Transform, TransformedEnv
 from torchrl.envs.batched_envs import BatchedEnvBase
 
-from maniskill_torchrl._private import complete_done
+from maniskill_torchrl._private import complete_done, env_step
 from maniskill_torchrl.masked_merge import any_done, check_repeat, merge_step
 
 __all__ = ["ActionRepeat"]
@@ -179,8 +179,8 @@ class _ParentInfo:
     def step(self, td: TensorDictBase) -> TensorDictBase:
         base = self._base
         if base is None:
-            return self.parent._step(td)
-        out = base._step(td)
+            return env_step(self.parent, td)
+        out = env_step(base, td)
         complete = self._complete
         if complete is None:  # fill missing done entries as TransformedEnv does, if this env needs it
             keys = set(out.keys(True, True))
