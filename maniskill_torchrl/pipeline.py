@@ -11,6 +11,7 @@ from typing import Any
 from torchrl.envs import Compose, TransformedEnv
 
 from maniskill_torchrl.env import ManiSkillEnv
+from maniskill_torchrl.masked_merge import check_repeat
 from maniskill_torchrl.transforms import ActionRepeat, CPUUnbatch, EpisodeMetrics, IgnoreTerminations
 
 __all__ = ["make_env"]
@@ -51,15 +52,11 @@ def make_env(
     Examples:
         >>> from maniskill_torchrl.pipeline import make_env
         >>> env = make_env("PickCube-v1", repeat=2, obs_mode="state")
-        >>> env.transform
-        Compose(
-            CPUUnbatch(),
-            ActionRepeat(repeat=2),
-            EpisodeMetrics())
-        >>> env.batch_size
-        torch.Size([])
+        >>> [type(t).__name__ for t in env.transform], env.batch_size
+        (['CPUUnbatch', 'ActionRepeat', 'EpisodeMetrics'], torch.Size([]))
         >>> env.close()
     """
+    repeat = check_repeat(repeat)  # before any env is built
     transforms: list = []
     if num_envs is None:
         maniskill_kwargs.setdefault("sim_backend", "physx_cpu")
