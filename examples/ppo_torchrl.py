@@ -280,6 +280,9 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     t0 = time.perf_counter()
     eval_s = 0.0  # wall time spent evaluating, not counted as training time
     for it, batch in enumerate(collector, 1):
+        if args.anneal_lr:  # linear decay to 0 over --total-frames, as CleanRL's / ManiSkill's anneal_lr
+            for group in optim.param_groups:
+                group["lr"] = args.lr * (1.0 - frames / total_frames)
         frames += batch.numel()
         record = {"iteration": it, "frames": frames, **episode_stats(batch)}
         for _ in range(args.epochs):
@@ -385,6 +388,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--minibatch-size", type=int, default=None)
     p.add_argument("--hidden", type=int, default=256)
     p.add_argument("--lr", type=float, default=3e-4)
+    p.add_argument("--anneal-lr", action="store_true", help="decay the learning rate linearly to 0 over --total-frames")
     p.add_argument("--gamma", type=float, default=0.8)
     p.add_argument("--lmbda", type=float, default=0.9)
     p.add_argument("--clip-epsilon", type=float, default=0.2)
