@@ -139,8 +139,8 @@ def record_video(
             td = step_mdp(td)
             if done:
                 td = env.reset()
+    control_freq = getattr(base.base_env, "control_freq", 20) or 20  # before close(): a closed env has no base_env
     env.close()
-    control_freq = getattr(base.base_env, "control_freq", 20) or 20
     fps = max(1, round(control_freq / repeat))
     imageio.mimsave(path, frames, fps=fps, macro_block_size=16)
     return len(frames)
