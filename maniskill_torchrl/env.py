@@ -17,7 +17,6 @@ from tensordict import TensorDictBase
 from torchrl.data import Bounded, Composite
 from torchrl.data.utils import DEVICE_TYPING
 
-from maniskill_torchrl._private import EnvWrapper, classproperty, new_tensordict
 from maniskill_torchrl._maniskill import (
     enable_physx_gpu,
     maniskill_base_env,
@@ -26,6 +25,7 @@ from maniskill_torchrl._maniskill import (
     similar_env_ids,
     wrapper_attr,
 )
+from maniskill_torchrl._private import EnvWrapper, classproperty, new_tensordict
 from maniskill_torchrl.cpu_vector import CPUVectorEnv
 from maniskill_torchrl.specs import (
     done_spec,

@@ -67,7 +67,8 @@ def tensor_infos(info: dict) -> dict:
 
 def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
     if a.dtype.kind in "fc":
-        view = {2: np.uint16, 4: np.uint32, 8: np.uint64, 16: np.uint64}[a.dtype.itemsize // (2 if a.dtype.kind == "c" else 1)]
+        itemsize = a.dtype.itemsize // (2 if a.dtype.kind == "c" else 1)
+        view = {2: np.uint16, 4: np.uint32, 8: np.uint64, 16: np.uint64}[itemsize]
         return np.array_equal(np.ascontiguousarray(a).view(view), np.ascontiguousarray(b).view(view))
     return np.array_equal(a, b)
 

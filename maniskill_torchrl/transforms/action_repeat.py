@@ -1,7 +1,6 @@
 """Masked action repeat as a TorchRL transform."""
 from __future__ import annotations
 
-import torch
 from tensordict import TensorDictBase
 from torchrl.envs import Compose, EnvBase, Transform, TransformedEnv
 from torchrl.envs.batched_envs import BatchedEnvBase
