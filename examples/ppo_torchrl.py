@@ -184,6 +184,24 @@ def make_models(env: EnvBase, hidden: int, device: torch.device) -> tuple[Probab
     return policy, value
 
 
+def make_objective(args: argparse.Namespace, policy: ProbabilisticActor, value: ValueOperator
+                   ) -> tuple[GAE, ClipPPOLoss, torch.optim.Optimizer]:
+    """GAE, the clipped PPO loss (normalised advantages, L2 critic) and its Adam optimiser."""
+    advantage = GAE(gamma=args.gamma, lmbda=args.lmbda, value_network=value, average_gae=False)
+    loss_module = ClipPPOLoss(
+        policy,
+        value,
+        clip_epsilon=args.clip_epsilon,
+        entropy_bonus=args.entropy_coeff > 0,
+        entropy_coeff=args.entropy_coeff,
+        critic_coeff=args.critic_coeff,
+        loss_critic_type="l2",
+        normalize_advantage=True,
+    )
+    optim = torch.optim.Adam(loss_module.parameters(), lr=args.lr, eps=1e-5)
+    return advantage, loss_module, optim
+
+
 # ------------------------------------------------------------------------- logging
 def episode_stats(batch: TensorDictBase) -> dict[str, float]:
     """Means of EpisodeMetrics' ``("next", "episode")`` entries over the episodes that ended in ``batch``."""
@@ -234,18 +252,7 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
         sampler=SamplerWithoutReplacement(),
         batch_size=args.minibatch_size,
     )
-    advantage = GAE(gamma=args.gamma, lmbda=args.lmbda, value_network=value, average_gae=False)
-    loss_module = ClipPPOLoss(
-        policy,
-        value,
-        clip_epsilon=args.clip_epsilon,
-        entropy_bonus=args.entropy_coeff > 0,
-        entropy_coeff=args.entropy_coeff,
-        critic_coeff=args.critic_coeff,
-        loss_critic_type="l2",
-        normalize_advantage=True,
-    )
-    optim = torch.optim.Adam(loss_module.parameters(), lr=args.lr, eps=1e-5)
+    advantage, loss_module, optim = make_objective(args, policy, value)
     iterations = total_frames // frames_per_batch
     updates_per_epoch = max(1, frames_per_batch // args.minibatch_size)
     print(

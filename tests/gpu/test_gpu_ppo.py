@@ -48,6 +48,7 @@ def test_ppo_collector_iterations_without_per_step_host_sync(tmp_path, record_pr
         "--epochs", "1",
         "--minibatch-size", str(max(frames // 2, 1)),
         "--max-episode-steps", str(EPISODE_STEPS),
+        "--eval-every", "0",  # evaluation has its own tests (test_evaluate.py); here: the training loop
         "--out", str(tmp_path),
     ]
     if not CUDA:  # the CPU check of this test's code: the GPU configuration's code path on one env

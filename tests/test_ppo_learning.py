@@ -1,0 +1,46 @@
+"""A learning smoke that can fail: the PPO example's objective, optimised on one fixed batch of
+real PushCube-v1 transitions, must lower both its critic loss and its clipped surrogate loss.
+A wrong sign, a detached graph, a key the loss does not read or a dead optimiser breaks it.
+Learning itself (success against frames) is a benchmark: benchmarks/RESULTS.md, "PPO"."""
+from __future__ import annotations
+
+import sys
+
+import torch
+
+from helpers import EXAMPLES
+from maniskill_torchrl import ManiSkillEnv
+
+sys.path.insert(0, str(EXAMPLES))
+import ppo_torchrl  # noqa: E402
+
+
+def test_ppo_objective_falls_on_a_fixed_batch() -> None:
+    args = ppo_torchrl.parse_args(["--device", "cpu", "--hidden", "64", "--lr", "1e-3"])
+    torch.manual_seed(0)
+    env = ManiSkillEnv("PushCube-v1", obs_mode="state", control_mode="pd_ee_delta_pos", max_episode_steps=25)
+    try:
+        policy, value = ppo_torchrl.make_models(env, args.hidden, torch.device("cpu"))
+        env.set_seed(0)
+        with torch.no_grad():
+            batch = env.rollout(100, policy, break_when_any_done=False)  # 4 episodes, auto-reset
+    finally:
+        env.close()
+    advantage, loss_module, optim = ppo_torchrl.make_objective(args, policy, value)
+    with torch.no_grad():
+        advantage(batch)  # fixed targets: the critic and the ratio are what the updates move
+
+    def losses() -> tuple[float, float]:
+        out = loss_module(batch)
+        return out["loss_objective"].item(), out["loss_critic"].item()
+
+    objective0, critic0 = losses()
+    for _ in range(40):
+        out = loss_module(batch)
+        optim.zero_grad()
+        (out["loss_objective"] + out["loss_critic"]).backward()
+        optim.step()
+    objective1, critic1 = losses()
+    assert critic1 < 0.5 * critic0, (critic0, critic1)
+    # From ~0 (ratio 1, normalised advantages) towards -(1 + clip) * E|A|-ish: clearly lower.
+    assert objective1 < objective0 - 0.05, (objective0, objective1)
