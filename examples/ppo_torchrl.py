@@ -118,9 +118,11 @@ def make_eval_env(env_id: str, num_envs: int, device: torch.device, repeat: int 
 
 
 @torch.no_grad()
-def evaluate_policy(env: EnvBase, policy: Any, episodes: int, seed: int, max_steps: int) -> dict[str, float]:
+def evaluate_policy(env: EnvBase, policy: Any, episodes: int, seed: int, max_steps: int,
+                    exploration: ExplorationType = ExplorationType.DETERMINISTIC) -> dict[str, float]:
     """Runs ``episodes`` full episodes, seeded ``seed``, ``seed + 1``, ...; the policy acts
-    deterministically (the TanhNormal's mode). ``policy=None``: uniform random actions.
+    deterministically (the TanhNormal's ``tanh(loc)``), or samples with
+    ``exploration=ExplorationType.RANDOM``. ``policy=None``: uniform random actions.
 
     Returns the means of ``success_once``, ``success_at_end`` and ``return`` (and ``episodes``).
     ``max_steps``: agent steps per episode (the time limit divided by any ActionRepeat)."""
@@ -129,7 +131,7 @@ def evaluate_policy(env: EnvBase, policy: Any, episodes: int, seed: int, max_ste
     finished = []
     for first in range(0, episodes, n):
         env.set_seed(seed + first)  # sub-env i starts with seed + first + i
-        with set_exploration_type(ExplorationType.DETERMINISTIC):
+        with set_exploration_type(exploration):
             rollout = env.rollout(max_steps, acting, break_when_any_done=False)
         done = rollout.get(("next", "done")).squeeze(-1)
         if not bool(done[..., -1].all()):

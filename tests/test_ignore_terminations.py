@@ -49,7 +49,7 @@ def test_nested_done_keys_multi_agent():
     check_env_specs(env)
     roll = env.rollout(6, break_when_any_done=False)
     for prefix in ((), ("agents",)):
-        term, trunc, done = (roll["next", *prefix, k] for k in ("terminated", "truncated", "done"))
+        term, trunc, done = (roll[("next", *prefix, k)] for k in ("terminated", "truncated", "done"))
         assert not term.any()
         assert torch.equal(done, trunc)
     # Only env 1 truncates (at its 4th step, then it is reset); the terminating envs never end.

@@ -87,8 +87,11 @@ def _still_alive(procs: set[tuple[int, int]]) -> dict[int, str]:
 # ------------------------------------------------------------------------------- fixtures
 @pytest.fixture(scope="module")
 def cluster():
-    """One local Ray instance for the module; yields the processes that were there before it."""
-    before = _ray_named(_proc_table())
+    """One local Ray instance for the module; yields the processes that were there before it:
+    Ray's, and this pytest's children (earlier tests may leave a multiprocessing forkserver or
+    resource tracker alive until pytest exits)."""
+    table = _proc_table()
+    before = _ray_named(table) | _descendants(os.getpid(), table)
     ray.init(num_cpus=2, log_to_driver=False, include_dashboard=False)
     yield before
     if ray.is_initialized():
@@ -231,5 +234,5 @@ def test_shutdown_leaves_no_processes(cluster, ex) -> None:
     while (left := _still_alive(started)) and time.monotonic() < deadline:
         time.sleep(0.25)
     assert not left, f"processes left after shutdown: {left}"
-    stray = _descendants(me, _proc_table())
+    stray = _descendants(me, _proc_table()) - cluster
     assert not stray, f"child processes left: {_still_alive(stray)}"
