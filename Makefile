@@ -26,7 +26,7 @@ help:
 setup:
 	@MANISKILL=$(MANISKILL) bash scripts/setup.sh
 
-test: setup
+test: setup lint
 	$(VENV)/bin/python -m pytest -q tests $(PYTEST_ARGS)
 
 test-nightly:

@@ -31,6 +31,7 @@ to a few tens of steps, so envs end at different inner steps):
 
 Run: ``python benchmarks/bench_action_repeat.py [--rounds 9] [--steps 100] [--json out.json]``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -232,7 +233,9 @@ def main(argv=None) -> int:
     p.add_argument("--partial-repeat", type=int, default=8)
     p.add_argument("--envs", type=int, default=4)
     p.add_argument(
-        "--clock", choices=("cpu", "wall"), default="cpu",
+        "--clock",
+        choices=("cpu", "wall"),
+        default="cpu",
         help="the clock that scores the overhead scenario (both are reported)",
     )
     p.add_argument("--skip-partial", action="store_true", help="only the overhead scenario")

@@ -46,6 +46,7 @@ The default run (4 pipelines x 6 cells x 2 rounds, ~17 s per run, mostly start-u
 process imports torch, TorchRL and ManiSkill) takes about 14 minutes on 2 idle cores;
 ``--n 2`` about 5.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -89,7 +90,6 @@ def _quiet() -> None:
 
 def _gym_thunk(repeat: int):
     import gymnasium as gym
-
     import mani_skill.envs  # noqa: F401
     from mani_skill.utils.wrappers import ActionRepeatWrapper, CPUGymWrapper
 
@@ -277,8 +277,15 @@ def child_multisync(n: int, repeat: int, seconds: float, opts: dict) -> dict:
     from torchrl.collectors import Collector
 
     meter = _CPUMeter()
-    collector = Collector(functools.partial(_worker_env, repeat), policy=None, frames_per_batch=EPISODE * n,
-                          total_frames=-1, backend="process", num_collectors=n, sync=opts.get("sync", "1") == "1")
+    collector = Collector(
+        functools.partial(_worker_env, repeat),
+        policy=None,
+        frames_per_batch=EPISODE * n,
+        total_frames=-1,
+        backend="process",
+        num_collectors=n,
+        sync=opts.get("sync", "1") == "1",
+    )
     collector.set_seed(SEED)
     return _time_collector(collector, seconds, meter)
 
@@ -308,7 +315,8 @@ def cell_name(spec: str, n: int, repeat: int) -> str:
 
 def fmt_table(results: dict, specs: list[str], ns: list[int], repeats: list[int]) -> str:
     rows = [
-        "| pipeline | N | repeat | frames/s (median) | min-max | ratio to gym | main cpu | workers cpu | others | rounds |",
+        "| pipeline | N | repeat | frames/s (median) | min-max | ratio to gym "
+        "| main cpu | workers cpu | others | rounds |",
         "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     notes = []
@@ -344,17 +352,29 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--repeat", type=int, nargs="+", default=[1, 2], help="action repeats (default 1 2)")
     p.add_argument("--rounds", type=int, default=2, help="alternating rounds (default 2)")
     p.add_argument("--seconds", type=float, default=2.5, help="timed collection per run (default 2.5)")
-    p.add_argument("--pipelines", nargs="+", default=DEFAULT_PIPELINES,
-                   help=f"contenders (default {' '.join(DEFAULT_PIPELINES)})")
+    p.add_argument(
+        "--pipelines", nargs="+", default=DEFAULT_PIPELINES, help=f"contenders (default {' '.join(DEFAULT_PIPELINES)})"
+    )
     p.add_argument("--out", "--json", dest="out", default=None, help="write all results as JSON here")
     p.add_argument("--timeout", type=float, default=240.0, help="per child process (killed after)")
-    p.add_argument("--max-busy", type=float, default=0.3,
-                   help="before each run, wait until other processes use fewer cores than this (default 0.3)")
-    p.add_argument("--max-wait", type=float, default=60.0,
-                   help="longest wait for that, in seconds; 0 turns the wait off (default 60)")
-    p.add_argument("--max-others", type=float, default=0.25,
-                   help="a run during which other processes kept more cores busy than this is run again "
-                        "(default 0.25)")
+    p.add_argument(
+        "--max-busy",
+        type=float,
+        default=0.3,
+        help="before each run, wait until other processes use fewer cores than this (default 0.3)",
+    )
+    p.add_argument(
+        "--max-wait",
+        type=float,
+        default=60.0,
+        help="longest wait for that, in seconds; 0 turns the wait off (default 60)",
+    )
+    p.add_argument(
+        "--max-others",
+        type=float,
+        default=0.25,
+        help="a run during which other processes kept more cores busy than this is run again (default 0.25)",
+    )
     p.add_argument("--retries", type=int, default=2, help="re-runs of a disturbed run (default 2)")
     p.add_argument("-q", "--quiet", action="store_true", help="no per-run lines")
     p.add_argument("--child", default=None, help=argparse.SUPPRESS)
@@ -374,22 +394,39 @@ def main(argv: list[str] | None = None) -> int:
     contenders = [
         ProcessContender(
             cell_name(spec, n, repeat),
-            [sys.executable, os.path.abspath(__file__), "--child", spec, "--n", str(n),
-             "--repeat", str(repeat), "--seconds", str(args.seconds)],
+            [
+                sys.executable,
+                os.path.abspath(__file__),
+                "--child",
+                spec,
+                "--n",
+                str(n),
+                "--repeat",
+                str(repeat),
+                "--seconds",
+                str(args.seconds),
+            ],
         )
         for repeat in args.repeat
         for n in args.n
         for spec in specs
     ]
-    results = alternate_processes(contenders, rounds=args.rounds, timeout=args.timeout,
-                                  cwd=os.path.dirname(HERE), verbose=not args.quiet,
-                                  quiet=(args.max_busy, args.max_wait) if args.max_wait > 0 else None,
-                                  accept=lambda r: r.get("others_cores", 0.0) <= args.max_others,
-                                  retries=args.retries)
+    results = alternate_processes(
+        contenders,
+        rounds=args.rounds,
+        timeout=args.timeout,
+        cwd=os.path.dirname(HERE),
+        verbose=not args.quiet,
+        quiet=(args.max_busy, args.max_wait) if args.max_wait > 0 else None,
+        accept=lambda r: r.get("others_cores", 0.0) <= args.max_others,
+        retries=args.retries,
+    )
     took = time.perf_counter() - t0
     table = fmt_table(results, specs, args.n, args.repeat)
-    print(f"\nPickCube-v1 state, random actions, episodes of {EPISODE} steps; frames = agent steps; "
-          f"median of {args.rounds} rounds x {args.seconds:g} s, one process per run ({took:.0f} s in all)\n")
+    print(
+        f"\nPickCube-v1 state, random actions, episodes of {EPISODE} steps; frames = agent steps; "
+        f"median of {args.rounds} rounds x {args.seconds:g} s, one process per run ({took:.0f} s in all)\n"
+    )
     print(table)
     missed = []
     for spec, target in TARGETS.items():
@@ -403,14 +440,24 @@ def main(argv: list[str] | None = None) -> int:
     if missed:
         print("\nbelow target: " + "; ".join(missed))
     if args.out:
-        save_json(args.out, {
-            "benchmark": "bench_collection",
-            "settings": {"env_id": ENV_ID, "episode": EPISODE, "n": args.n, "repeat": args.repeat,
-                         "rounds": args.rounds, "seconds": args.seconds, "pipelines": specs},
-            "wall_s": took,
-            "table": table,
-            "results": {k: v.as_dict() for k, v in results.items()},
-        })
+        save_json(
+            args.out,
+            {
+                "benchmark": "bench_collection",
+                "settings": {
+                    "env_id": ENV_ID,
+                    "episode": EPISODE,
+                    "n": args.n,
+                    "repeat": args.repeat,
+                    "rounds": args.rounds,
+                    "seconds": args.seconds,
+                    "pipelines": specs,
+                },
+                "wall_s": took,
+                "table": table,
+                "results": {k: v.as_dict() for k, v in results.items()},
+            },
+        )
         print(f"\nwrote {args.out}")
     return 0
 

@@ -31,6 +31,7 @@ real loop the same code costs more (ManiSkill's step evicts it).
 
 Run: ``python benchmarks/bench_env.py [--rounds 31] [--steps 50] [--json out.json]``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -246,8 +247,7 @@ def scenario_paired(steps: int, rounds: int, warmup: int):
                 times[names[k]].append(dt)
     env.close()
     return {
-        n: {"median_s": statistics.median(v), "mean_s": statistics.fmean(v), "steps": len(v)}
-        for n, v in times.items()
+        n: {"median_s": statistics.median(v), "mean_s": statistics.fmean(v), "steps": len(v)} for n, v in times.items()
     }
 
 
@@ -273,8 +273,7 @@ def main(argv=None) -> int:
 
     torch.set_num_threads(args.threads)
     print(
-        f"bench_env: PickCube-v1 state, CPU sim, scored on {args.clock} time, "
-        f"torch threads {torch.get_num_threads()}"
+        f"bench_env: PickCube-v1 state, CPU sim, scored on {args.clock} time, torch threads {torch.get_num_threads()}"
     )
     print(machine_line())
     payload = {"args": vars(args)}

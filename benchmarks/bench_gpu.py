@@ -25,6 +25,7 @@ machine: ``bash scripts/gpu_check.sh`` (benchmarks/README.md, "GPU kit").
 
 Run: ``python benchmarks/bench_gpu.py [--envs 256 1024 4096] [--steps 40] [--rounds 7] [--out bench_gpu.json]``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -47,9 +48,9 @@ CONTENDERS = ("raw", "ManiSkillEnv", "+ActionRepeat(2)+EpisodeMetrics", "ManiSki
 
 
 def bench_size(env_id: str, n: int, steps: int, rounds: int, warmup: int, verbose: bool, backend: str = "gpu") -> dict:
+    from mani_skill.vector.wrappers.gymnasium import ManiSkillVectorEnv
     from torchrl.envs import Compose, TransformedEnv
 
-    from mani_skill.vector.wrappers.gymnasium import ManiSkillVectorEnv
     from maniskill_torchrl import ActionRepeat, EpisodeMetrics, ManiSkillEnv
 
     t0 = time.perf_counter()
@@ -126,11 +127,14 @@ def bench_size(env_id: str, n: int, steps: int, rounds: int, warmup: int, verbos
     )
     vec.closed = True  # env.close() below closes the shared gym env once
     env.close()
-    del env, stacked, vec, raw, acts, state
+    return {"results": results, "build_s": build_s}  # the caller frees the GPU memory (free_gpu)
+
+
+def free_gpu(backend: str) -> None:
+    """After ``bench_size`` returned (its envs and actions are unreferenced): give the memory back."""
     gc.collect()
     if backend == "gpu":
         torch.cuda.empty_cache()
-    return {"results": results, "build_s": build_s}
 
 
 def main(argv=None) -> int:
@@ -142,8 +146,11 @@ def main(argv=None) -> int:
     p.add_argument("--warmup", type=int, default=1)
     p.add_argument("--out", "--json", dest="out", default=None, help="write the results as JSON here")
     p.add_argument("-v", "--verbose", action="store_true")
-    p.add_argument("--cpu-dry-run", action="store_true",
-                   help="check this script's code on the CPU sim with one env (no GPU figure: nothing to compare)")
+    p.add_argument(
+        "--cpu-dry-run",
+        action="store_true",
+        help="check this script's code on the CPU sim with one env (no GPU figure: nothing to compare)",
+    )
     args, unknown = p.parse_known_args(argv)  # run_all.py may forward the CPU benchmarks' flags
     if args.steps < 2 or args.steps % 2:
         p.error("--steps must be even and >= 2 (ActionRepeat(2) takes --steps / 2 outer steps)")
@@ -152,44 +159,63 @@ def main(argv=None) -> int:
     if args.cpu_dry_run:
         backend, args.envs, args.rounds, args.warmup = "physx_cpu", [1], 1, 0
     elif not torch.cuda.is_available():
-        msg = ("bench_gpu: no CUDA device (torch.cuda.is_available() is False): nothing measured. "
-               "Run it on a GPU machine: bash scripts/gpu_check.sh (benchmarks/README.md, 'GPU kit').")
+        msg = (
+            "bench_gpu: no CUDA device (torch.cuda.is_available() is False): nothing measured. "
+            "Run it on a GPU machine: bash scripts/gpu_check.sh (benchmarks/README.md, 'GPU kit')."
+        )
         print(msg)
         if args.out:
             save_json(args.out, {"skipped": msg, "args": vars(args)})
         return 0
 
-    gpu = torch.cuda.get_device_name(0) if backend == "gpu" else "none: --cpu-dry-run (CPU sim, one env; no GPU figures)"
-    print(f"bench_gpu: {args.env_id} state obs, GPU sim on {gpu}; {args.steps} physics steps x envs per "
-          f"contender per round, {args.rounds} rounds (+{args.warmup} warm-up), medians of wall time")
+    gpu = (
+        torch.cuda.get_device_name(0) if backend == "gpu" else "none: --cpu-dry-run (CPU sim, one env; no GPU figures)"
+    )
+    print(
+        f"bench_gpu: {args.env_id} state obs, GPU sim on {gpu}; {args.steps} physics steps x envs per "
+        f"contender per round, {args.rounds} rounds (+{args.warmup} warm-up), medians of wall time"
+    )
     print(machine_line())
     if unknown:
         print(f"(ignored arguments: {' '.join(unknown)})")
-    payload = {"args": vars(args), "gpu": gpu, "cuda": torch.version.cuda, "sizes": {}, "summary": {},
-               "date": time.strftime("%Y-%m-%d")}
+    payload = {
+        "args": vars(args),
+        "gpu": gpu,
+        "cuda": torch.version.cuda,
+        "sizes": {},
+        "summary": {},
+        "date": time.strftime("%Y-%m-%d"),
+    }
     verdicts = []
     for n in args.envs:
         t0 = time.perf_counter()
         out = bench_size(args.env_id, n, args.steps, args.rounds, args.warmup, args.verbose, backend)
+        free_gpu(backend)
         res = out["results"]
         print(f"\n{n} envs (env built in {out['build_s']:.1f} s, measured in {time.perf_counter() - t0:.1f} s)")
         print(report(res, baseline="raw", unit="env-step"))
-        line = {name: {"steps_per_s": 1.0 / r.median, "ratio_to_raw": ratio(res, name, "raw")}
-                for name, r in res.items()}
+        line = {
+            name: {"steps_per_s": 1.0 / r.median, "ratio_to_raw": ratio(res, name, "raw")} for name, r in res.items()
+        }
         for name, v in line.items():
             print(f"  {name:<34} {v['steps_per_s'] / 1e3:10.1f} k env-steps/s   {v['ratio_to_raw']:.3f}x raw's time")
         vs_raw = line["ManiSkillEnv"]["ratio_to_raw"]
         vs_vec = ratio(res, "ManiSkillEnv", "ManiSkillVectorEnv")
         ok = vs_raw <= TARGET_VS_RAW and vs_vec <= 1.0
         verdicts.append(ok)
-        print(f"  ManiSkillEnv / raw = {vs_raw:.3f}x (target <= {TARGET_VS_RAW:.2f}x), "
-              f"ManiSkillEnv / ManiSkillVectorEnv = {vs_vec:.3f}x (target <= 1.00x): {'met' if ok else 'NOT met'}")
+        print(
+            f"  ManiSkillEnv / raw = {vs_raw:.3f}x (target <= {TARGET_VS_RAW:.2f}x), "
+            f"ManiSkillEnv / ManiSkillVectorEnv = {vs_vec:.3f}x (target <= 1.00x): {'met' if ok else 'NOT met'}"
+        )
         payload["sizes"][str(n)] = {"build_s": out["build_s"], **{k: v.as_dict() for k, v in res.items()}}
         payload["summary"][str(n)] = {**line, "ManiSkillEnv_vs_ManiSkillVectorEnv": vs_vec, "targets_met": ok}
         if args.out:  # after every size: a run stopped by a time limit keeps what it measured
             save_json(args.out, {**payload, "complete": False})
-    payload["targets"] = {"ManiSkillEnv_vs_raw_max": TARGET_VS_RAW, "ManiSkillEnv_vs_ManiSkillVectorEnv_max": 1.0,
-                          "met_at_all_sizes": all(verdicts)}
+    payload["targets"] = {
+        "ManiSkillEnv_vs_raw_max": TARGET_VS_RAW,
+        "ManiSkillEnv_vs_ManiSkillVectorEnv_max": 1.0,
+        "met_at_all_sizes": all(verdicts),
+    }
     payload["complete"] = True
     if args.out:
         save_json(args.out, payload)

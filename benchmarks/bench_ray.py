@@ -19,6 +19,7 @@ Ray's own raylet / GCS / agents).
 Run: ``python benchmarks/bench_ray.py [--k 1 2] [--rounds 2] [--seconds 5] [--out results.json]``
 (about 4 minutes on 2 cores with the defaults).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -31,7 +32,7 @@ import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
-from bench_collection import EPISODE, ENV_ID, SEED, _CPUMeter, _quiet, _time_collector, _worker_env  # noqa: E402
+from bench_collection import ENV_ID, EPISODE, SEED, _CPUMeter, _quiet, _time_collector, _worker_env  # noqa: E402
 from common import ProcessContender, alternate_processes, child_result, machine_line, save_json  # noqa: E402
 
 PIPELINES = ["multisync", "ray"]
@@ -49,8 +50,9 @@ def child(kind: str, k: int, seconds: float, num_cpus: int) -> dict:
         import ray
 
         ray.init(num_cpus=num_cpus, log_to_driver=False, include_dashboard=False)
-        collector = Collector(make_env, None, backend="ray",
-                              backend_options={"remote_configs": {"num_cpus": 1}}, **common)
+        collector = Collector(
+            make_env, None, backend="ray", backend_options={"remote_configs": {"num_cpus": 1}}, **common
+        )
     elif kind == "multisync":
         collector = Collector(make_env, None, backend="process", **common)
     else:
@@ -87,7 +89,8 @@ def cell(kind: str, k: int) -> str:
 
 def fmt_table(results: dict, ks: list[int]) -> str:
     rows = [
-        "| collectors | K | frames/s (median) | min-max | ray / local | start-up s | main cpu | workers cpu | others | rounds |",
+        "| collectors | K | frames/s (median) | min-max | ray / local | start-up s "
+        "| main cpu | workers cpu | others | rounds |",
         "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     notes = []
@@ -96,7 +99,7 @@ def fmt_table(results: dict, ks: list[int]) -> str:
         base_fps = 1.0 / base.median if base.ok else None
         for kind in PIPELINES:
             res = results[cell(kind, k)]
-            label = "Ray (`backend=\"ray\"`)" if kind == "ray" else "local processes (`MultiSyncCollector`)"
+            label = 'Ray (`backend="ray"`)' if kind == "ray" else "local processes (`MultiSyncCollector`)"
             if not res.ok:
                 rows.append(f"| {label} | {k} | - | - | - | - | - | - | - | 0 |")
                 if res.note:
@@ -111,8 +114,10 @@ def fmt_table(results: dict, ks: list[int]) -> str:
             others = [e["others_cores"] for e in res.extra if "others_cores" in e]
             others_s = f"{statistics.median(others):.2f}" if others else "-"
             ratio = f"{fps / base_fps:.2f}x" if base_fps and kind == "ray" else "-"
-            rows.append(f"| {label} | {k} | {fps:.0f} | {lo:.0f}-{hi:.0f} | {ratio} | {startup:.1f} | "
-                        f"{main:.2f} | {workers:.2f} | {others_s} | {len(res.per_unit)} |")
+            rows.append(
+                f"| {label} | {k} | {fps:.0f} | {lo:.0f}-{hi:.0f} | {ratio} | {startup:.1f} | "
+                f"{main:.2f} | {workers:.2f} | {others_s} | {len(res.per_unit)} |"
+            )
     return "\n".join(rows + ([""] + notes if notes else []))
 
 
@@ -124,11 +129,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--num-cpus", type=int, default=2, help="CPUs of the local Ray instance (default 2)")
     p.add_argument("--out", "--json", dest="out", default=None, help="write all results as JSON here")
     p.add_argument("--timeout", type=float, default=240.0, help="per child process (killed after)")
-    p.add_argument("--max-busy", type=float, default=0.3,
-                   help="before each run, wait until other processes use fewer cores than this (default 0.3)")
+    p.add_argument(
+        "--max-busy",
+        type=float,
+        default=0.3,
+        help="before each run, wait until other processes use fewer cores than this (default 0.3)",
+    )
     p.add_argument("--max-wait", type=float, default=60.0, help="longest wait for that, s; 0: no wait (default 60)")
-    p.add_argument("--max-others", type=float, default=0.25,
-                   help="re-run a run during which other processes kept more cores busy (default 0.25)")
+    p.add_argument(
+        "--max-others",
+        type=float,
+        default=0.25,
+        help="re-run a run during which other processes kept more cores busy (default 0.25)",
+    )
     p.add_argument("--retries", type=int, default=1, help="re-runs of a disturbed run (default 1)")
     p.add_argument("-q", "--quiet", action="store_true", help="no per-run lines")
     p.add_argument("--child", default=None, help=argparse.SUPPRESS)
@@ -147,24 +160,50 @@ def main(argv: list[str] | None = None) -> int:
     print(machine_line())
     t0 = time.perf_counter()
     contenders = [
-        ProcessContender(cell(kind, k), [sys.executable, os.path.abspath(__file__), "--child", kind, "--k", str(k),
-                                         "--seconds", str(args.seconds), "--num-cpus", str(args.num_cpus)])
+        ProcessContender(
+            cell(kind, k),
+            [
+                sys.executable,
+                os.path.abspath(__file__),
+                "--child",
+                kind,
+                "--k",
+                str(k),
+                "--seconds",
+                str(args.seconds),
+                "--num-cpus",
+                str(args.num_cpus),
+            ],
+        )
         for k in args.k
         for kind in PIPELINES
     ]
-    results = alternate_processes(contenders, rounds=args.rounds, timeout=args.timeout,
-                                  cwd=os.path.dirname(HERE), verbose=not args.quiet,
-                                  quiet=(args.max_busy, args.max_wait) if args.max_wait > 0 else None,
-                                  accept=lambda r: r.get("others_cores", 0.0) <= args.max_others,
-                                  retries=args.retries)
+    results = alternate_processes(
+        contenders,
+        rounds=args.rounds,
+        timeout=args.timeout,
+        cwd=os.path.dirname(HERE),
+        verbose=not args.quiet,
+        quiet=(args.max_busy, args.max_wait) if args.max_wait > 0 else None,
+        accept=lambda r: r.get("others_cores", 0.0) <= args.max_others,
+        retries=args.retries,
+    )
     took = time.perf_counter() - t0
-    print(f"\n{ENV_ID} state, random actions, episodes of {EPISODE} steps, one ManiSkillEnv -> CPUUnbatch per "
-          f"collector, frames_per_batch = {EPISODE} x K, sync; median of {args.rounds} rounds x {args.seconds:g} s, "
-          f"one process per run ({took:.0f} s in all)\n")
+    print(
+        f"\n{ENV_ID} state, random actions, episodes of {EPISODE} steps, one ManiSkillEnv -> CPUUnbatch per "
+        f"collector, frames_per_batch = {EPISODE} x K, sync; median of {args.rounds} rounds x {args.seconds:g} s, "
+        f"one process per run ({took:.0f} s in all)\n"
+    )
     print(fmt_table(results, args.k))
     if args.out:
-        save_json(args.out, {"seconds": args.seconds, "rounds": args.rounds,
-                             "results": {name: r.as_dict() for name, r in results.items()}})
+        save_json(
+            args.out,
+            {
+                "seconds": args.seconds,
+                "rounds": args.rounds,
+                "results": {name: r.as_dict() for name, r in results.items()},
+            },
+        )
     return 0
 
 

@@ -25,6 +25,7 @@ Scenarios:
 
 Run: ``python benchmarks/bench_wrappers.py [--rounds 30] [--steps 100] [--json out.json]``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -160,8 +161,9 @@ def main(argv=None) -> int:
         summary.append((name, r, 1e6 * diff))
         payload[name] = {k: {"wall_s": v.per_unit_wall, "cpu_s": v.per_unit_cpu} for k, v in res.items()}
 
-    print("\n| shim class vs ManiSkill's | ratio (median of paired CPU-time ratios) "
-          "| CPU us/step difference | target |")
+    print(
+        "\n| shim class vs ManiSkill's | ratio (median of paired CPU-time ratios) | CPU us/step difference | target |"
+    )
     print("|---|---:|---:|---|")
     for name, r, diff in summary:
         print(f"| {name} | {r:.3f}x | {diff:+.1f} | {'ok' if r <= TARGET else 'OVER'} (<= {TARGET:.2f}x) |")

@@ -37,6 +37,7 @@ Example::
     )
     print(report(results, baseline="raw"))
 """
+
 from __future__ import annotations
 
 import datetime as _dt
@@ -271,9 +272,7 @@ def machine_info() -> dict:
 def machine_line(info: dict | None = None) -> str:
     """One line describing the machine and versions, for RESULTS.md."""
     info = info or machine_info()
-    libs = ", ".join(
-        f"{k} {info[k]}" for k in ("torch", "tensordict", "torchrl", "mani_skill", "sapien") if k in info
-    )
+    libs = ", ".join(f"{k} {info[k]}" for k in ("torch", "tensordict", "torchrl", "mani_skill", "sapien") if k in info)
     return f"{info['cpu']}, {info['cores']} cores, Python {info['python']}; {libs}"
 
 
@@ -299,8 +298,14 @@ def make_actions(space, n: int, batch: tuple = (), seed: int = 0) -> list:
 RESULT_MARKER = "@@bench-result "
 
 
-def child_result(units: int | None = None, wall_s: float | None = None, cpu_s: float | None = None,
-                 *, skipped: str | None = None, **extra) -> None:
+def child_result(
+    units: int | None = None,
+    wall_s: float | None = None,
+    cpu_s: float | None = None,
+    *,
+    skipped: str | None = None,
+    **extra,
+) -> None:
     """Reports a child's measurement to :func:`alternate_processes` (one marked JSON line on stdout).
 
     ``units`` done in ``wall_s`` seconds of wall time and ``cpu_s`` seconds of the child's own CPU
@@ -335,8 +340,9 @@ def busy_cores(interval: float = 1.0) -> float | None:
     return cores * (1.0 - (b[1] - a[1]) / (b[0] - a[0]))
 
 
-def wait_for_quiet(max_busy: float = 0.3, max_wait: float = 120.0, interval: float = 0.5,
-                   verbose: bool = False) -> float | None:
+def wait_for_quiet(
+    max_busy: float = 0.3, max_wait: float = 120.0, interval: float = 0.5, verbose: bool = False
+) -> float | None:
     """Waits until other processes keep fewer than ``max_busy`` cores busy (sampled every
     ``interval`` s), at most ``max_wait`` seconds; returns the last reading (``None`` if unknown).
 
@@ -419,8 +425,9 @@ def _run_child(c: ProcessContender, timeout: float, cwd: str | None) -> tuple[di
     import threading
 
     env = dict(os.environ, PYTHONUNBUFFERED="1", **(c.env or {}))
-    proc = subprocess.Popen(c.argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            env=env, cwd=cwd, start_new_session=True)
+    proc = subprocess.Popen(
+        c.argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, cwd=cwd, start_new_session=True
+    )
     lines: list[str] = []
     got = threading.Event()
 
@@ -453,7 +460,7 @@ def _run_child(c: ProcessContender, timeout: float, cwd: str | None) -> tuple[di
     payload = None
     for line in lines:
         if line.startswith(RESULT_MARKER):
-            payload = json.loads(line[len(RESULT_MARKER):])
+            payload = json.loads(line[len(RESULT_MARKER) :])
     if payload is None:
         return None, f"exit {proc.returncode}, no result\n{out[-2000:]}"
     return payload, out
@@ -502,13 +509,21 @@ def alternate_processes(
                 t0 = time.perf_counter()
                 payload, log = _run_child(c, timeout, cwd)
                 took = time.perf_counter() - t0
-                if (payload is None or payload.get("skipped") or accept is None or accept(payload)
-                        or rejected >= retries):
+                if (
+                    payload is None
+                    or payload.get("skipped")
+                    or accept is None
+                    or accept(payload)
+                    or rejected >= retries
+                ):
                     break
                 rejected += 1
                 if verbose:
-                    print(f"  round {r}: {c.name:<34} rejected ({payload.get('units', 0) / payload.get('wall_s', 1):.1f} "
-                          f"units/s; {payload}), running it again", flush=True)
+                    print(
+                        f"  round {r}: {c.name:<34} rejected ({payload.get('units', 0) / payload.get('wall_s', 1):.1f} "
+                        f"units/s; {payload}), running it again",
+                        flush=True,
+                    )
             if on_result is not None:
                 on_result(c.name, r, payload)
             if payload is None:
@@ -534,6 +549,9 @@ def alternate_processes(
                 extra["rejected"] = rejected
             res.extra.append(extra)
             if verbose:
-                print(f"  round {r}: {c.name:<34} {units / wall:8.1f} units/s ({units} in {wall:.2f} s; "
-                      f"child ran {took:.1f} s)", flush=True)
+                print(
+                    f"  round {r}: {c.name:<34} {units / wall:8.1f} units/s ({units} in {wall:.2f} s; "
+                    f"child ran {took:.1f} s)",
+                    flush=True,
+                )
     return results

@@ -4,6 +4,7 @@ second axis) with the random-policy baseline as a dashed line.
 
 Run: ``python benchmarks/plot_ppo.py outputs/ppo/metrics.jsonl --out benchmarks/ppo_pushcube_cpu.png``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -58,8 +59,10 @@ def main(argv: list[str] | None = None) -> int:
         if "wall_s" in evals[-1]:
             top = ax.secondary_xaxis(
                 "top",
-                functions=(lambda f, e=evals: _interp(f, e, "frames", "wall_s") / 60,
-                           lambda m, e=evals: _interp(m * 60, e, "wall_s", "frames")),
+                functions=(
+                    lambda f, e=evals: _interp(f, e, "frames", "wall_s") / 60,
+                    lambda m, e=evals: _interp(m * 60, e, "wall_s", "frames"),
+                ),
             )
             top.set_xlabel("wall minutes (training + evaluation)")
     fig.suptitle(args.title or str(args.metrics.parent.name))

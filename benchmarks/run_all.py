@@ -12,6 +12,7 @@ Usage::
     python benchmarks/run_all.py --list
     python benchmarks/run_all.py -- --rounds 5   # arguments after -- go to every script
 """
+
 from __future__ import annotations
 
 import argparse
@@ -64,7 +65,9 @@ def main(argv: list[str] | None = None) -> int:
     summary = []
     for script in scripts:
         cmd = [sys.executable, script, *forwarded]
-        print(f"\n{'=' * 78}\n$ {' '.join(os.path.relpath(c) if c == script else c for c in cmd)}\n{'=' * 78}", flush=True)
+        print(
+            f"\n{'=' * 78}\n$ {' '.join(os.path.relpath(c) if c == script else c for c in cmd)}\n{'=' * 78}", flush=True
+        )
         t0 = time.perf_counter()
         rc = subprocess.call(cmd, cwd=os.path.dirname(HERE))
         summary.append((short_name(script), rc, time.perf_counter() - t0))

@@ -32,6 +32,7 @@ A remote collector that crashes (its env factory raises, or its process dies) ma
 iteration raise a Ray error naming the actor (``ActorDiedError``/``RayTaskError``);
 ``--crash`` demonstrates it (tests/test_ray.py checks it under a time limit).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -48,8 +49,9 @@ from torch import nn
 ENV_ID = "PushCube-v1"
 
 
-def make_env(env_id: str = ENV_ID, num_envs: int = 1, max_episode_steps: int | None = None,
-             crash_after: int | None = None):
+def make_env(
+    env_id: str = ENV_ID, num_envs: int = 1, max_episode_steps: int | None = None, crash_after: int | None = None
+):
     """The env of one remote collector (runs inside the Ray actor).
 
     ``crash_after=k`` makes the actor's process exit abruptly (``os._exit``) at its k-th step:
@@ -108,8 +110,9 @@ def make_policy(obs_dim: int, act_dim: int, seed: int = 0):
     from tensordict.nn import TensorDictModule
 
     torch.manual_seed(seed)
-    return TensorDictModule(VersionedMLP(obs_dim, act_dim), in_keys=["observation"],
-                            out_keys=["action", "policy_version"])
+    return TensorDictModule(
+        VersionedMLP(obs_dim, act_dim), in_keys=["observation"], out_keys=["action", "policy_version"]
+    )
 
 
 def env_dims(env_id: str) -> tuple[int, int]:
@@ -130,9 +133,18 @@ def new_weights(policy, version: int, scale: float = 0.5) -> None:
     module.version.fill_(version)
 
 
-def make_collector(policy, *, collectors: int, frames_per_batch: int, total_frames: int,
-                   env_fn, address: str | None = None, num_cpus: int = 2, remote_configs=None,
-                   worker_logs: bool = False):
+def make_collector(
+    policy,
+    *,
+    collectors: int,
+    frames_per_batch: int,
+    total_frames: int,
+    env_fn,
+    address: str | None = None,
+    num_cpus: int = 2,
+    remote_configs=None,
+    worker_logs: bool = False,
+):
     from torchrl.collectors import Collector
 
     # TorchRL calls ray.init(**ray_init_config) unless Ray is already initialised, and shuts Ray
@@ -170,19 +182,34 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--env-id", default=ENV_ID)
     p.add_argument("--collectors", type=int, default=2, help="remote collectors (Ray actors), default 2")
-    p.add_argument("--num-envs", type=int, default=1,
-                   help="envs per remote collector: 1 = ManiSkillEnv -> CPUUnbatch; N = ManiSkillEnv(num_envs=N)")
+    p.add_argument(
+        "--num-envs",
+        type=int,
+        default=1,
+        help="envs per remote collector: 1 = ManiSkillEnv -> CPUUnbatch; N = ManiSkillEnv(num_envs=N)",
+    )
     p.add_argument("--frames-per-batch", type=int, default=200, help="over all collectors (default 200)")
     p.add_argument("--batches", type=int, default=4)
-    p.add_argument("--max-episode-steps", type=int, default=25,
-                   help="time limit, so that episodes end within a few batches (default 25)")
-    p.add_argument("--address", default=None,
-                   help="Ray cluster to join ('auto' after `ray start`); default: a local ray.init(num_cpus=...)")
+    p.add_argument(
+        "--max-episode-steps",
+        type=int,
+        default=25,
+        help="time limit, so that episodes end within a few batches (default 25)",
+    )
+    p.add_argument(
+        "--address",
+        default=None,
+        help="Ray cluster to join ('auto' after `ray start`); default: a local ray.init(num_cpus=...)",
+    )
     p.add_argument("--num-cpus", type=int, default=2, help="CPUs of the local Ray instance (default 2)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--worker-logs", action="store_true", help="forward the actors' stdout/stderr here")
-    p.add_argument("--crash", choices=["factory", "exit"], default=None,
-                   help="demonstrate a failing remote collector: its env factory raises, or its process exits")
+    p.add_argument(
+        "--crash",
+        choices=["factory", "exit"],
+        default=None,
+        help="demonstrate a failing remote collector: its env factory raises, or its process exits",
+    )
     args = p.parse_args(argv)
     if args.frames_per_batch % args.collectors:
         p.error("--frames-per-batch must be a multiple of --collectors (sync=True splits it evenly)")
@@ -201,15 +228,22 @@ def main(argv: list[str] | None = None) -> int:
     ok = True
     try:
         collector = make_collector(
-            policy, collectors=args.collectors, frames_per_batch=args.frames_per_batch,
-            total_frames=args.frames_per_batch * args.batches, env_fn=env_fn,
-            address=args.address, num_cpus=args.num_cpus, worker_logs=args.worker_logs,
+            policy,
+            collectors=args.collectors,
+            frames_per_batch=args.frames_per_batch,
+            total_frames=args.frames_per_batch * args.batches,
+            env_fn=env_fn,
+            address=args.address,
+            num_cpus=args.num_cpus,
+            worker_logs=args.worker_logs,
         )
         collector.set_seed(args.seed)
         collector.update_policy_weights_()  # version 0 to every remote collector
-        print(f"{args.collectors} remote collectors of {args.env_id} "
-              f"({'ManiSkillEnv -> CPUUnbatch' if args.num_envs == 1 else f'ManiSkillEnv(num_envs={args.num_envs})'}"
-              f" -> EpisodeMetrics), start-up {time.perf_counter() - t0:.1f} s")
+        print(
+            f"{args.collectors} remote collectors of {args.env_id} "
+            f"({'ManiSkillEnv -> CPUUnbatch' if args.num_envs == 1 else f'ManiSkillEnv(num_envs={args.num_envs})'}"
+            f" -> EpisodeMetrics), start-up {time.perf_counter() - t0:.1f} s"
+        )
         frames = episodes = successes = 0
         t1 = time.perf_counter()
         for i, batch in enumerate(collector):
@@ -222,9 +256,11 @@ def main(argv: list[str] | None = None) -> int:
                 local = policy(batch.select("observation").clone())["action"]
             same = torch.allclose(local, batch["action"], atol=1e-5)
             ok &= same and versions == [i]
-            print(f"batch {i}: {s['frames']} frames {list(batch.shape)}, policy version {versions}, "
-                  f"actions = local policy's: {same}, episodes finished {s['episodes']}, "
-                  f"successes {s['successes']}")
+            print(
+                f"batch {i}: {s['frames']} frames {list(batch.shape)}, policy version {versions}, "
+                f"actions = local policy's: {same}, episodes finished {s['episodes']}, "
+                f"successes {s['successes']}"
+            )
             new_weights(policy, version=i + 1)
             collector.update_policy_weights_()  # the next batch runs on version i + 1
         wall = time.perf_counter() - t1

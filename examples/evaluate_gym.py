@@ -31,6 +31,7 @@ Usage::
     python examples/evaluate_gym.py --checkpoint outputs/ppo/ppo_checkpoint.pt --episodes 10 --video eval.mp4
     python examples/evaluate_gym.py --checkpoint outputs/ppo/ppo_checkpoint.pt --backend torchrl
 """
+
 from __future__ import annotations
 
 import argparse
@@ -123,8 +124,9 @@ def evaluate_checkpoint(args: argparse.Namespace, ckpt: dict[str, Any]) -> list[
     from ppo_checkpoint import numpy_policy, policy_from_checkpoint, specs_from_spaces
 
     render = args.video is not None
-    thunk = functools.partial(make_env, args.env_id, args.max_episode_steps, args.obs_mode,
-                              args.control_mode, ckpt["repeat"], render)
+    thunk = functools.partial(
+        make_env, args.env_id, args.max_episode_steps, args.obs_mode, args.control_mode, ckpt["repeat"], render
+    )
     envs = gym.vector.AsyncVectorEnv([thunk] * args.num_envs, context="forkserver")
     try:
         specs = specs_from_spaces(envs.single_observation_space, envs.single_action_space)
@@ -144,8 +146,10 @@ def evaluate_checkpoint(args: argparse.Namespace, ckpt: dict[str, Any]) -> list[
                 if done.all():
                     break
                 if done.any():
-                    raise RuntimeError(f"sub-envs {np.flatnonzero(done).tolist()} ended before the others "
-                                       "although terminations are ignored")
+                    raise RuntimeError(
+                        f"sub-envs {np.flatnonzero(done).tolist()} ended before the others "
+                        "although terminations are ignored"
+                    )
             ep = infos["episode"]
             for i in range(min(args.num_envs, args.episodes - first)):
                 rec: dict[str, Any] = {"env": i, "seed": args.seed + first + i}
@@ -164,8 +168,9 @@ def evaluate_checkpoint(args: argparse.Namespace, ckpt: dict[str, Any]) -> list[
     return episodes
 
 
-def _add_frames(videos: dict[int, list[np.ndarray]], envs: gym.vector.VectorEnv, first: int,
-                recording: list[int]) -> None:
+def _add_frames(
+    videos: dict[int, list[np.ndarray]], envs: gym.vector.VectorEnv, first: int, recording: list[int]
+) -> None:
     images = envs.call("render")  # one frame per sub-env (all render; only the recorded ones are kept)
     for i in recording:
         videos.setdefault(first + i, []).append(np.asarray(images[i]))
@@ -231,20 +236,32 @@ def print_averages(episodes: list[dict[str, Any]]) -> None:
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("--env-id", default=None,
-                   help="default: the checkpoint's task, else PickCube-v1; with --checkpoint, must be its task")
+    p = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
+    p.add_argument(
+        "--env-id",
+        default=None,
+        help="default: the checkpoint's task, else PickCube-v1; with --checkpoint, must be its task",
+    )
     p.add_argument("--num-envs", type=int, default=2, help="AsyncVectorEnv sub-envs (processes)")
     p.add_argument("--episodes", type=int, default=4, help="episodes to evaluate in all")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--policy", choices=("random", "zero"), default="random", help="without --checkpoint")
-    p.add_argument("--checkpoint", default=None, metavar="PATH",
-                   help="evaluate the ppo_checkpoint.pt of examples/ppo_torchrl.py (file or its --out folder)")
+    p.add_argument(
+        "--checkpoint",
+        default=None,
+        metavar="PATH",
+        help="evaluate the ppo_checkpoint.pt of examples/ppo_torchrl.py (file or its --out folder)",
+    )
     p.add_argument("--control-mode", default=None, help="default: the checkpoint's, else the task's")
-    p.add_argument("--backend", choices=("gym", "torchrl"), default="gym",
-                   help="gym: AsyncVectorEnv of CPUGymWrapper; torchrl: ppo_torchrl's make_eval_env + "
-                        "evaluate_policy (averages only; needs --checkpoint)")
+    p.add_argument(
+        "--backend",
+        choices=("gym", "torchrl"),
+        default="gym",
+        help="gym: AsyncVectorEnv of CPUGymWrapper; torchrl: ppo_torchrl's make_eval_env + "
+        "evaluate_policy (averages only; needs --checkpoint)",
+    )
     p.add_argument("--video", default=None, metavar="PATH", help="write an mp4 of the first episodes (gym backend)")
     p.add_argument("--video-episodes", type=int, default=2, help="episodes in the --video")
     p.add_argument("--max-episode-steps", type=int, default=None, help="default: the task's time limit")
@@ -275,9 +292,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.checkpoint is None:
         episodes = evaluate(args)
     else:
-        from ppo_checkpoint import CheckpointError, load_checkpoint
-
         import torch
+
+        from ppo_checkpoint import CheckpointError, load_checkpoint
 
         torch.set_num_threads(1)  # a small MLP: more threads only compete with the sim workers
         try:
@@ -285,8 +302,11 @@ def main(argv: list[str] | None = None) -> int:
             args.env_id = ckpt["env_id"]
             if args.control_mode is None:
                 args.control_mode = ckpt["control_mode"]
-            print(f"checkpoint {ckpt['path']}: {ckpt['env_id']}, control mode {args.control_mode}, "
-                  f"repeat {ckpt['repeat']}, {ckpt.get('frames', '?')} frames; backend {args.backend}", flush=True)
+            print(
+                f"checkpoint {ckpt['path']}: {ckpt['env_id']}, control mode {args.control_mode}, "
+                f"repeat {ckpt['repeat']}, {ckpt.get('frames', '?')} frames; backend {args.backend}",
+                flush=True,
+            )
             if args.backend == "torchrl":
                 res = evaluate_torchrl(args, ckpt)
                 print(f"episodes: {int(res['episodes'])}")

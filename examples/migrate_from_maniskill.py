@@ -19,6 +19,7 @@ Usage::
 
     python examples/migrate_from_maniskill.py --env-id PickCube-v1 --steps 30 --repeat 2
 """
+
 from __future__ import annotations
 
 import argparse
@@ -29,9 +30,8 @@ from types import ModuleType
 from typing import Any
 
 import gymnasium as gym
-import numpy as np
-
 import mani_skill.envs  # noqa: F401  (registers the tasks)
+import numpy as np
 
 # The two modules compared. (`import mani_skill.utils.wrappers as m` would resolve the
 # attribute chain, and `mani_skill.utils` is shadowed there by `mani_skill.envs.utils`.)
@@ -47,8 +47,13 @@ def run(wrappers: ModuleType, args: argparse.Namespace) -> list[dict[str, Any]]:
     Every reset is seeded (``seed + episode``): an unseeded reset of a second env
     in the same process would not reproduce the first one's.
     """
-    env = gym.make(args.env_id, num_envs=1, obs_mode=args.obs_mode,
-                   max_episode_steps=args.max_episode_steps, sim_backend="physx_cpu")
+    env = gym.make(
+        args.env_id,
+        num_envs=1,
+        obs_mode=args.obs_mode,
+        max_episode_steps=args.max_episode_steps,
+        sim_backend="physx_cpu",
+    )
     if args.repeat > 1:
         env = wrappers.ActionRepeatWrapper(env, repeat=args.repeat)
     env = wrappers.CPUGymWrapper(env, ignore_terminations=args.ignore_terminations, record_metrics=True)
@@ -60,8 +65,17 @@ def run(wrappers: ModuleType, args: argparse.Namespace) -> list[dict[str, Any]]:
     for t in range(1, args.steps + 1):
         action = rng.uniform(space.low, space.high).astype(space.dtype)
         obs, reward, terminated, truncated, info = env.step(action)
-        trace.append({"step": t, "kind": "step", "obs": obs, "reward": reward,
-                      "terminated": terminated, "truncated": truncated, "info": info})
+        trace.append(
+            {
+                "step": t,
+                "kind": "step",
+                "obs": obs,
+                "reward": reward,
+                "terminated": terminated,
+                "truncated": truncated,
+                "info": info,
+            }
+        )
         if terminated or truncated:
             episode += 1
             obs, info = env.reset(seed=args.seed + episode)
@@ -101,8 +115,10 @@ def _fmt(rec: dict[str, Any]) -> str:
     ep = rec["info"].get("episode", {})
     flags = ("T" if rec["terminated"] else "-") + ("t" if rec["truncated"] else "-")
     succ = rec["info"].get("success")
-    return (f"r={rec['reward']:+.5f} {flags} succ={'?' if succ is None else int(succ)} "
-            f"ret={ep.get('return', float('nan')):.5f} len={ep.get('episode_len', '?')}")
+    return (
+        f"r={rec['reward']:+.5f} {flags} succ={'?' if succ is None else int(succ)} "
+        f"ret={ep.get('return', float('nan')):.5f} len={ep.get('episode_len', '?')}"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -123,8 +139,10 @@ def main(argv: list[str] | None = None) -> int:
 
     left, right = "mani_skill.utils.wrappers", "maniskill_torchrl.wrappers"
     width = max(len(_fmt(r)) for r in theirs + ours) + 2
-    print(f"{args.env_id}: ActionRepeatWrapper(repeat={args.repeat}) -> CPUGymWrapper(record_metrics=True, "
-          f"ignore_terminations={args.ignore_terminations}), {args.steps} seeded random steps")
+    print(
+        f"{args.env_id}: ActionRepeatWrapper(repeat={args.repeat}) -> CPUGymWrapper(record_metrics=True, "
+        f"ignore_terminations={args.ignore_terminations}), {args.steps} seeded random steps"
+    )
     print(f"{'step':>4}  {left:<{width}}{right:<{width}}same")
     diffs: list[str] = []
     for a, b in zip(theirs, ours):
@@ -134,8 +152,9 @@ def main(argv: list[str] | None = None) -> int:
     if len(theirs) != len(ours):
         diffs.append(f"trace lengths differ: {len(theirs)} vs {len(ours)}")
     identical = not diffs
-    print(f"identical: {identical} ({len(theirs)} records compared: observations, rewards, flags, infos, "
-          "info['episode'])")
+    print(
+        f"identical: {identical} ({len(theirs)} records compared: observations, rewards, flags, infos, info['episode'])"
+    )
     for d in diffs[:20]:
         print(f"  {d}")
     return 0 if identical else 1

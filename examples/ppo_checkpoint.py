@@ -15,11 +15,13 @@ gym and its TorchRL backend):
 This file sits beside ``ppo_torchrl.py`` (``examples/`` is ``sys.path[0]`` when
 a script there runs).
 """
+
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import torch

@@ -32,6 +32,7 @@ Usage::
     python examples/ppo_torchrl.py --smoke         # CPU: end-to-end check
     python examples/ppo_torchrl.py --device cpu --num-envs 4 --total-frames 20000
 """
+
 from __future__ import annotations
 
 import argparse
@@ -118,8 +119,14 @@ def make_eval_env(env_id: str, num_envs: int, device: torch.device, repeat: int 
 
 
 @torch.no_grad()
-def evaluate_policy(env: EnvBase, policy: Any, episodes: int, seed: int, max_steps: int,
-                    exploration: ExplorationType = ExplorationType.DETERMINISTIC) -> dict[str, float]:
+def evaluate_policy(
+    env: EnvBase,
+    policy: Any,
+    episodes: int,
+    seed: int,
+    max_steps: int,
+    exploration: ExplorationType = ExplorationType.DETERMINISTIC,
+) -> dict[str, float]:
     """Runs ``episodes`` full episodes, seeded ``seed``, ``seed + 1``, ...; the policy acts
     deterministically (the TanhNormal's ``tanh(loc)``), or samples with
     ``exploration=ExplorationType.RANDOM``. ``policy=None``: uniform random actions.
@@ -156,8 +163,9 @@ def make_models(env: EnvBase, hidden: int, device: torch.device) -> tuple[Probab
     act_dim = action_spec.shape[-1]
 
     def mlp(out: int) -> MLP:
-        return MLP(in_features=obs_dim, out_features=out, num_cells=[hidden] * 3,
-                   activation_class=nn.Tanh, device=device)
+        return MLP(
+            in_features=obs_dim, out_features=out, num_cells=[hidden] * 3, activation_class=nn.Tanh, device=device
+        )
 
     actor_net = nn.Sequential(
         mlp(act_dim),
@@ -186,8 +194,9 @@ def make_models(env: EnvBase, hidden: int, device: torch.device) -> tuple[Probab
     return policy, value
 
 
-def make_objective(args: argparse.Namespace, policy: ProbabilisticActor, value: ValueOperator
-                   ) -> tuple[GAE, ClipPPOLoss, torch.optim.Optimizer]:
+def make_objective(
+    args: argparse.Namespace, policy: ProbabilisticActor, value: ValueOperator
+) -> tuple[GAE, ClipPPOLoss, torch.optim.Optimizer]:
     """GAE, the clipped PPO loss (normalised advantages, L2 critic) and its Adam optimiser."""
     advantage = GAE(gamma=args.gamma, lmbda=args.lmbda, value_network=value, average_gae=False)
     loss_module = ClipPPOLoss(
@@ -274,13 +283,21 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
         def log_eval(frames: int, train_s: float, which: str, acting: Any) -> None:
             t = time.perf_counter()
             res = evaluate_policy(eval_env, acting, args.eval_episodes, args.eval_seed, eval_steps)
-            rec = {"eval": which, "frames": frames, "train_s": round(train_s, 1),
-                   "wall_s": round(time.perf_counter() - start, 1),
-                   "eval_s": round(time.perf_counter() - t, 1), **res}
+            rec = {
+                "eval": which,
+                "frames": frames,
+                "train_s": round(train_s, 1),
+                "wall_s": round(time.perf_counter() - start, 1),
+                "eval_s": round(time.perf_counter() - t, 1),
+                **res,
+            }
             with log_path.open("a") as f:
                 f.write(json.dumps(rec) + "\n")
-            print(f"eval ({which}) at {frames} frames: " + ", ".join(
-                f"{k} {v:.3f}" for k, v in res.items() if k != "episodes"), flush=True)
+            print(
+                f"eval ({which}) at {frames} frames: "
+                + ", ".join(f"{k} {v:.3f}" for k, v in res.items() if k != "episodes"),
+                flush=True,
+            )
 
         log_eval(0, 0.0, "random", None)
         log_eval(0, 0.0, "policy", policy)
@@ -322,8 +339,9 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
             f.write(json.dumps(record) + "\n")
         print(_format(record), flush=True)
         out_of_time = args.max_minutes is not None and time.perf_counter() - start >= 60 * args.max_minutes
-        if eval_env is not None and (frames // args.eval_every > (frames - batch.numel()) // args.eval_every
-                                     or it == iterations or out_of_time):
+        if eval_env is not None and (
+            frames // args.eval_every > (frames - batch.numel()) // args.eval_every or it == iterations or out_of_time
+        ):
             t = time.perf_counter()
             log_eval(frames, record["train_s"], "policy", policy)
             eval_s += time.perf_counter() - t
@@ -377,17 +395,21 @@ def _format(rec: dict[str, Any]) -> str:
 # ----------------------------------------------------------------------------- args
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     """Flags; ``--smoke`` fills in a tiny CPU configuration for whatever was not given."""
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
     p.add_argument("--env-id", default="PushCube-v1")
-    p.add_argument("--smoke", action="store_true",
-                   help="tiny CPU run: 2 batched CPU envs, a few hundred frames")
+    p.add_argument("--smoke", action="store_true", help="tiny CPU run: 2 batched CPU envs, a few hundred frames")
     p.add_argument("--device", default=None, help="cuda (GPU sim) or cpu (CPU sim); default: cuda if available")
     p.add_argument("--num-envs", type=int, default=None, help="default: 512 on GPU, 2 on CPU and with --smoke")
-    p.add_argument("--vec", choices=("batched", "parallel", "serial"), default="batched",
-                   help="batched: ManiSkillEnv(num_envs=--num-envs) (one GPU simulator, or one CPU worker "
-                        "process per env); parallel / serial: a ParallelEnv / SerialEnv of CPUUnbatch-ed "
-                        "CPU envs")
+    p.add_argument(
+        "--vec",
+        choices=("batched", "parallel", "serial"),
+        default="batched",
+        help="batched: ManiSkillEnv(num_envs=--num-envs) (one GPU simulator, or one CPU worker "
+        "process per env); parallel / serial: a ParallelEnv / SerialEnv of CPUUnbatch-ed "
+        "CPU envs",
+    )
     p.add_argument("--num-steps", type=int, default=None, help="rollout steps per env per iteration")
     p.add_argument("--total-frames", type=int, default=None)
     p.add_argument("--repeat", type=int, default=1, help="ActionRepeat")
@@ -405,15 +427,26 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--critic-coeff", type=float, default=0.5)
     p.add_argument("--max-grad-norm", type=float, default=0.5)
     p.add_argument("--threads", type=int, default=1, help="torch threads on the CPU")
-    p.add_argument("--eval-every", type=int, default=None,
-                   help="evaluate every this many frames (0: never); default 0 with --smoke, 20000 on the CPU, "
-                        "200000 on the GPU")
+    p.add_argument(
+        "--eval-every",
+        type=int,
+        default=None,
+        help="evaluate every this many frames (0: never); default 0 with --smoke, 20000 on the CPU, 200000 on the GPU",
+    )
     p.add_argument("--eval-episodes", type=int, default=50, help="seeded episodes per evaluation")
-    p.add_argument("--eval-envs", type=int, default=None,
-                   help="parallel evaluation envs; default: --eval-episodes on the GPU, 2 on the CPU")
+    p.add_argument(
+        "--eval-envs",
+        type=int,
+        default=None,
+        help="parallel evaluation envs; default: --eval-episodes on the GPU, 2 on the CPU",
+    )
     p.add_argument("--eval-seed", type=int, default=10_000, help="evaluation episodes use seeds from here")
-    p.add_argument("--max-minutes", type=float, default=None,
-                   help="stop after this much wall time (training and evaluation), with a last evaluation")
+    p.add_argument(
+        "--max-minutes",
+        type=float,
+        default=None,
+        help="stop after this much wall time (training and evaluation), with a last evaluation",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="outputs/ppo")
     args = p.parse_args(argv)
@@ -441,13 +474,25 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         args.eval_every = 0 if args.smoke else (200_000 if gpu else 20_000)
     if args.eval_envs is None:
         args.eval_envs = args.eval_episodes if gpu else min(2, args.eval_episodes)
-    for name in ("num_envs", "num_steps", "total_frames", "epochs", "minibatch_size", "repeat", "hidden", "threads",
-                 "eval_episodes", "eval_envs"):
+    for name in (
+        "num_envs",
+        "num_steps",
+        "total_frames",
+        "epochs",
+        "minibatch_size",
+        "repeat",
+        "hidden",
+        "threads",
+        "eval_episodes",
+        "eval_envs",
+    ):
         if getattr(args, name) < 1:
             p.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
     if args.minibatch_size > args.num_envs * args.num_steps:
-        p.error(f"--minibatch-size ({args.minibatch_size}) exceeds the frames per iteration "
-                f"(--num-envs x --num-steps = {args.num_envs * args.num_steps})")
+        p.error(
+            f"--minibatch-size ({args.minibatch_size}) exceeds the frames per iteration "
+            f"(--num-envs x --num-steps = {args.num_envs * args.num_steps})"
+        )
     return args
 
 

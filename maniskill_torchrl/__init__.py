@@ -9,6 +9,7 @@
 The public names are imported on first use, so ``import maniskill_torchrl.wrappers``
 (the gym shim, loaded in every gymnasium vector-env worker) does not import TorchRL.
 """
+
 from __future__ import annotations
 
 import importlib

@@ -1,4 +1,5 @@
 """``python -m maniskill_torchrl``: the ``maniskill-torchrl`` command line."""
+
 import sys
 
 from maniskill_torchrl.cli import main

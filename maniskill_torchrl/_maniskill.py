@@ -1,6 +1,7 @@
 """ManiSkill/SAPIEN helpers with no TorchRL import (the gym shim uses them too): the ManiSkill
 env under gym wrappers, its render frame shape, the registered task ids, log filters, and the
 GPU sim's PhysX library."""
+
 from __future__ import annotations
 
 import zipfile

@@ -19,6 +19,7 @@ Two facts, measured with ManiSkill 3.0.1 / SAPIEN 3 on Mesa lavapipe:
   builds one env in the parent to read the spaces) the workers hang.
   :func:`prefer_spawn` sets ``"spawn"`` when nothing is set yet, as ``import torchrl`` does.
 """
+
 from __future__ import annotations
 
 import multiprocessing as mp

@@ -22,6 +22,7 @@ and must not import TorchRL); the TorchRL ones on first use.
   ``torchrl.envs.ParallelEnv`` that :mod:`maniskill_torchrl.parallel` reads (its
   overrides of ``_wait_for_workers`` / ``_start_workers`` keep their TorchRL names).
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -106,4 +107,3 @@ def __getattr__(name: str) -> Any:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
     globals()[name] = value
     return value
-

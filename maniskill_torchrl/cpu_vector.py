@@ -16,6 +16,7 @@ equals a lone ManiSkill env given the same seed and actions, bit for bit.
 This module imports neither TorchRL nor the rest of the library beyond
 ``_maniskill``: the workers import it, and start faster without them.
 """
+
 from __future__ import annotations
 
 import multiprocessing

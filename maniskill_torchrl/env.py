@@ -4,6 +4,7 @@ ManiSkill returns batched torch tensors (``[num_envs, ...]``) on the simulation
 device; :class:`ManiSkillWrapper` puts them into TensorDicts as they are: no
 numpy round trips, no host copies, one TensorDict built per step.
 """
+
 from __future__ import annotations
 
 import importlib.util
@@ -229,9 +230,7 @@ class ManiSkillWrapper(EnvWrapper):
             self._info_map.append((key, td_key))
 
         action_spec = space_to_spec(act_space, batch, device)
-        self._action_names = (
-            list(act_space.spaces.keys()) if isinstance(act_space, gym.spaces.Dict) else None
-        )
+        self._action_names = list(act_space.spaces.keys()) if isinstance(act_space, gym.spaces.Dict) else None
         self._action_shapes = (
             {k: action_spec[k].shape for k in self._action_names}
             if self._action_names is not None
@@ -290,8 +289,7 @@ class ManiSkillWrapper(EnvWrapper):
                     raise self._missing_action(tensordict, ("action", k))
                 if a.shape != self._action_shapes[k]:
                     raise ValueError(
-                        f"ManiSkill action {k!r} of shape {tuple(a.shape)}, expected "
-                        f"{tuple(self._action_shapes[k])}."
+                        f"ManiSkill action {k!r} of shape {tuple(a.shape)}, expected {tuple(self._action_shapes[k])}."
                     )
         obs, reward, terminated, truncated, info = self._env.step(action)
         source = self._to_tensordict(obs, info)

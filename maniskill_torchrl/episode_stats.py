@@ -5,6 +5,7 @@ what each field computes and which task info it needs. The ``EpisodeMetrics``
 spec, :meth:`EpisodeStats.zeros`, :meth:`EpisodeStats.update` and the gym shim's
 ``info["episode"]`` are all derived from it.
 """
+
 from __future__ import annotations
 
 from collections.abc import Sequence

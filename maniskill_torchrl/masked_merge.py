@@ -4,6 +4,7 @@ An env that has ended keeps its last real step; reward is summed and done flags
 OR'ed over the inner steps it really took. :func:`check_repeat` is the one check
 of the repeat count both take.
 """
+
 from __future__ import annotations
 
 import numbers
@@ -31,8 +32,7 @@ def check_repeat(repeat: object) -> int:
         )
     if repeat < 1:
         raise ValueError(
-            f"repeat must be >= 1, got {repeat}: an int >= 1 counts the inner steps per step "
-            "(1 means no repeat)."
+            f"repeat must be >= 1, got {repeat}: an int >= 1 counts the inner steps per step (1 means no repeat)."
         )
     return int(repeat)
 
@@ -114,8 +114,4 @@ def merge_step(
 
 def _top_level_only(td: TensorDictBase, *key_lists: Sequence[NestedKey]) -> bool:
     """Whether ``td`` is a plain TensorDict and every key to set on its copy is top-level."""
-    return (
-        type(td) is TensorDict
-        and not has_names(td)
-        and all(isinstance(k, str) for keys in key_lists for k in keys)
-    )
+    return type(td) is TensorDict and not has_names(td) and all(isinstance(k, str) for keys in key_lists for k in keys)

@@ -9,6 +9,7 @@ follows numpy's order exactly.
 - :func:`pairwise_sum`: the sum over the last dim, on any device.
 - :class:`RunningNumpySum`: per-env running sums, one reward per env per step.
 """
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -30,9 +31,7 @@ def _expand(mask: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
 
 def _tree8(r: torch.Tensor) -> torch.Tensor:
     # numpy: ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
-    return ((r[..., 0] + r[..., 1]) + (r[..., 2] + r[..., 3])) + (
-        (r[..., 4] + r[..., 5]) + (r[..., 6] + r[..., 7])
-    )
+    return ((r[..., 0] + r[..., 1]) + (r[..., 2] + r[..., 3])) + ((r[..., 4] + r[..., 5]) + (r[..., 6] + r[..., 7]))
 
 
 def _pairwise(x: torch.Tensor) -> torch.Tensor:

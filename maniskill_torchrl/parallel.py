@@ -49,6 +49,7 @@ Examples:
     torch.Size([2, 3, 42])
     >>> env.close()
 """
+
 from __future__ import annotations
 
 import os

@@ -4,6 +4,7 @@ The CLI demo, the examples (PPO training and evaluation, Ray) and the README bui
 their envs with :func:`make_env`, so the order of the transforms is written once:
 ``ManiSkillEnv [-> CPUUnbatch] [-> IgnoreTerminations] [-> ActionRepeat] [-> EpisodeMetrics]``.
 """
+
 from __future__ import annotations
 
 from typing import Any

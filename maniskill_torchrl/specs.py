@@ -6,6 +6,7 @@ ManiSkill describes one sub-env with ``single_observation_space`` /
 stay bool). Dict spaces become nested :class:`~torchrl.data.Composite` specs
 with the same key paths.
 """
+
 from __future__ import annotations
 
 from collections.abc import Mapping
@@ -42,9 +43,7 @@ def _bool_spec(shape: torch.Size, device: torch.device) -> TensorSpec:
     return Categorical(n=2, shape=shape, dtype=torch.bool, device=device)
 
 
-def space_to_spec(
-    space: gym.Space, batch_size: torch.Size, device: torch.device
-) -> TensorSpec:
+def space_to_spec(space: gym.Space, batch_size: torch.Size, device: torch.device) -> TensorSpec:
     """Converts one (unbatched) gymnasium space into a spec batched by ``batch_size``.
 
     Box spaces with finite bounds become :class:`~torchrl.data.Bounded`, unbounded
@@ -77,9 +76,7 @@ def space_to_spec(
             return Bounded(low=low_t, high=high_t, shape=shape, dtype=dtype, device=device)
         return Unbounded(shape=shape, dtype=dtype, device=device)
     if isinstance(space, gym.spaces.Discrete):
-        return Categorical(
-            n=int(space.n), shape=batch_size, dtype=torch.int64, device=device
-        )
+        return Categorical(n=int(space.n), shape=batch_size, dtype=torch.int64, device=device)
     if isinstance(space, gym.spaces.MultiDiscrete):
         return MultiCategorical(
             nvec=torch.as_tensor(space.nvec),
@@ -93,9 +90,7 @@ def space_to_spec(
     )
 
 
-def observation_spec_from_space(
-    space: gym.Space, batch_size: torch.Size, device: torch.device
-) -> Composite:
+def observation_spec_from_space(space: gym.Space, batch_size: torch.Size, device: torch.device) -> Composite:
     """Observation spec: a Box space goes to ``"observation"``, a Dict space keeps its key paths."""
     spec = space_to_spec(space, batch_size, device)
     if isinstance(spec, Composite):
@@ -103,9 +98,7 @@ def observation_spec_from_space(
     return Composite(observation=spec, shape=batch_size, device=device)
 
 
-def info_spec_from_infos(
-    infos: Mapping[str, Any], batch_size: torch.Size, device: torch.device
-) -> Composite:
+def info_spec_from_infos(infos: Mapping[str, Any], batch_size: torch.Size, device: torch.device) -> Composite:
     """Declares the tensor entries of a ManiSkill info dict (``success``, ``fail``, ``elapsed_steps``...).
 
     Only tensors whose leading dims match the batch are kept: python values such as
@@ -142,6 +135,4 @@ def done_spec(batch_size: torch.Size, device: torch.device) -> Composite:
 
 def reward_spec(batch_size: torch.Size, device: torch.device) -> Unbounded:
     """``reward``: ``[*batch, 1]`` float32."""
-    return Unbounded(
-        shape=torch.Size(batch_size) + (1,), dtype=torch.float32, device=device
-    )
+    return Unbounded(shape=torch.Size(batch_size) + (1,), dtype=torch.float32, device=device)

@@ -26,6 +26,7 @@ these tasks open were listed with ``strace -e openat`` on the CPU sim):
 Usage: ``python3 scripts/gpu_kit_slim.py IN.whl OUT_DIR`` (the rules are picked
 by the wheel's distribution name; a wheel without rules is copied unchanged).
 """
+
 from __future__ import annotations
 
 import base64
@@ -119,12 +120,18 @@ def slim(src: str, out_dir: str) -> str:
                     lines.append(f"dropped {n} files, {size / 2**20:.1f} MiB: {reason}")
                 note = ("\n".join(lines) + "\n").encode()
                 note_name = f"{dist_info}/SLIMMED.txt"
-                zout.writestr(zipfile.ZipInfo(note_name, date_time=(2020, 1, 1, 0, 0, 0)), note,
-                              compress_type=zipfile.ZIP_DEFLATED)
+                zout.writestr(
+                    zipfile.ZipInfo(note_name, date_time=(2020, 1, 1, 0, 0, 0)),
+                    note,
+                    compress_type=zipfile.ZIP_DEFLATED,
+                )
                 kept_rows.append(f"{note_name},{_record_hash(note)},{len(note)}")
             kept_rows.append(f"{record_name},,")
-            zout.writestr(zipfile.ZipInfo(record_name, date_time=(2020, 1, 1, 0, 0, 0)),
-                          ("\n".join(kept_rows) + "\n").encode(), compress_type=zipfile.ZIP_DEFLATED)
+            zout.writestr(
+                zipfile.ZipInfo(record_name, date_time=(2020, 1, 1, 0, 0, 0)),
+                ("\n".join(kept_rows) + "\n").encode(),
+                compress_type=zipfile.ZIP_DEFLATED,
+            )
     os.replace(tmp, dst)
     before, after = os.path.getsize(src), os.path.getsize(dst)
     print(f"slim {os.path.basename(src)}: {before / 2**20:.1f} MiB -> {after / 2**20:.1f} MiB")

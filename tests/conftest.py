@@ -1,6 +1,7 @@
 """Shared fixtures (the shared helper functions live in helpers.py): ManiSkill envs on the CPU
 sim are costly to build (about 0.4 s), so module-scoped fixtures share them where a test allows;
 every comparison seeds every reset."""
+
 from __future__ import annotations
 
 import warnings

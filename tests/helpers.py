@@ -4,6 +4,7 @@
 - comparing bit for bit: :func:`assert_same`, :func:`bits`, :func:`clone_tree`, :func:`tensor_infos`;
 - running what users run as subprocesses: :func:`run`, :data:`ROOT`, :data:`EXAMPLES`, :data:`TIMEOUT_S`.
 """
+
 from __future__ import annotations
 
 import os

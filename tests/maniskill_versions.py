@@ -4,6 +4,7 @@ ManiSkill's users install the release (``mani-skill`` 3.0.x, this library's ``ma
 extra) or the nightly (``mani-skill-nightly``); both install the same ``mani_skill`` package,
 so only the distribution name tells them apart.
 """
+
 from __future__ import annotations
 
 import importlib.metadata

@@ -8,6 +8,7 @@
 - inner steps counted per sub-env under ``SerialEnv``; composition with other transforms,
   ``CPUUnbatch``, ``check_env_specs`` and a collector.
 """
+
 from __future__ import annotations
 
 import gymnasium as gym
@@ -15,6 +16,7 @@ import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from mani_skill.utils.wrappers.action_repeat import ActionRepeatWrapper
 from torchrl.envs import (
     Compose,
     FrameSkipTransform,
@@ -30,8 +32,6 @@ from helpers import assert_same, make_gym_env, random_actions
 from maniskill_torchrl import ActionRepeat, ManiSkillEnv
 from maniskill_torchrl.transforms import ActionRepeat as ActionRepeatFromTransforms
 from toy_env import ToyEnv, serial_toy_env, toy_nested, toy_reward
-
-from mani_skill.utils.wrappers.action_repeat import ActionRepeatWrapper
 
 pytestmark = pytest.mark.usefixtures("torch_single_thread")
 
@@ -125,9 +125,7 @@ def cartpole_pair():
 def test_equals_maniskill_pickcube(pick_pair, repeat):
     gym_env, ours = pick_pair
     actions = _batched_action(gym_env.unwrapped.single_action_space, 40, seed=repeat)
-    lengths = _compare_with_maniskill(
-        gym_env, TransformedEnv(ours, ActionRepeat(repeat)), repeat, [11, 12], actions
-    )
+    lengths = _compare_with_maniskill(gym_env, TransformedEnv(ours, ActionRepeat(repeat)), repeat, [11, 12], actions)
     assert lengths == [8, 8]  # truncated mid-repeat for repeat 3 and 5
 
 
@@ -135,9 +133,7 @@ def test_equals_maniskill_pickcube(pick_pair, repeat):
 def test_equals_maniskill_cartpole_fail(cartpole_pair, repeat):
     gym_env, ours = cartpole_pair
     actions = _batched_action(gym_env.unwrapped.single_action_space, 100, seed=11)
-    lengths = _compare_with_maniskill(
-        gym_env, TransformedEnv(ours, ActionRepeat(repeat)), repeat, [3, 4, 5], actions
-    )
+    lengths = _compare_with_maniskill(gym_env, TransformedEnv(ours, ActionRepeat(repeat)), repeat, [3, 4, 5], actions)
     # Episodes end by `fail` before the time limit, some mid-repeat (not a multiple of repeat).
     assert max(lengths) < 24
     if repeat > 1:

@@ -1,8 +1,10 @@
-"""The shared core on its own (masked_merge, episode_stats, numpy_sum): numpy-exact episode return on every code path, masked merge.
+"""The shared core on its own (masked_merge, episode_stats, numpy_sum): numpy-exact episode
+return on every code path, masked merge.
 
 The reference here is numpy itself (``np.sum`` over a python list of float32 rewards, as
 ManiSkill's CPUGymWrapper computes the return) and plain per-env python bookkeeping.
 """
+
 from __future__ import annotations
 
 import numpy as np

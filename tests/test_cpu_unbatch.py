@@ -1,6 +1,7 @@
 """CPUUnbatch: one CPU ManiSkill env (batch [1]) as an unbatched TorchRL env, and stacked again.
 
 Every comparison between two env instances seeds every reset."""
+
 from __future__ import annotations
 
 import pickle
@@ -39,9 +40,7 @@ def worker_env():
 def pick_state():
     """(batched ManiSkillEnv, a second one under CPUUnbatch)."""
     batched = ManiSkillEnv("PickCube-v1", obs_mode="state", max_episode_steps=6)
-    unbatched = TransformedEnv(
-        ManiSkillEnv("PickCube-v1", obs_mode="state", max_episode_steps=6), CPUUnbatch()
-    )
+    unbatched = TransformedEnv(ManiSkillEnv("PickCube-v1", obs_mode="state", max_episode_steps=6), CPUUnbatch())
     yield batched, unbatched
     batched.close()
     unbatched.close()
@@ -244,9 +243,7 @@ def test_parallel_env_and_collector():
             collector.shutdown(close_env=False)
         assert data.batch_size == torch.Size([2, 2 * T_MAX])
         ep = data["next", "episode"]
-        assert set(ep.keys()) == {
-            "return", "episode_len", "reward", "success_once", "success_at_end"
-        }
+        assert set(ep.keys()) == {"return", "episode_len", "reward", "success_once", "success_at_end"}
         # Episodes run to the time limit (IgnoreTerminations): the length is ManiSkill's step counter.
         assert torch.equal(ep["episode_len"], data["next", "elapsed_steps"].long())
         rewards = data["next", "reward"].squeeze(-1).numpy()

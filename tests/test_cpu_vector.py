@@ -5,6 +5,7 @@ process, every reset seeded as the contract says: after ``set_seed(s)`` sub-env 
 starts with ``reset(seed=s + i)``; every later reset event draws ``d`` from
 ``numpy.random.RandomState(s)`` and the sub-envs it resets restart with ``d + i``.
 """
+
 from __future__ import annotations
 
 import os
@@ -125,7 +126,9 @@ def test_each_sub_env_equals_a_raw_env(cartpole):
                 obs, reward, term, trunc, info = raw.step(action[i : i + 1])
                 _assert_sub_env(td["next"], i, obs, info, f"step {t}")
                 assert torch.equal(td["next", "reward"][i], reward), t
-                assert bool(td["next", "terminated"][i]) == bool(term) and bool(td["next", "truncated"][i]) == bool(trunc)
+                assert bool(td["next", "terminated"][i]) == bool(term) and bool(td["next", "truncated"][i]) == bool(
+                    trunc
+                )
                 dones.append(bool(term | trunc))
             if any(dones):
                 partial += not all(dones)
@@ -227,11 +230,20 @@ def test_collector_with_transforms():
 
 def test_rgb_observations_and_render():
     env = ManiSkillEnv(
-        "PickCube-v1", num_envs=N, obs_mode="rgb", from_pixels=True,
-        sensor_configs=dict(width=32, height=32), human_render_camera_configs=dict(width=48, height=40),
+        "PickCube-v1",
+        num_envs=N,
+        obs_mode="rgb",
+        from_pixels=True,
+        sensor_configs=dict(width=32, height=32),
+        human_render_camera_configs=dict(width=48, height=40),
     )
-    raw = make_gym_env("PickCube-v1", obs_mode="rgb", render_mode="rgb_array",
-                       sensor_configs=dict(width=32, height=32), human_render_camera_configs=dict(width=48, height=40))
+    raw = make_gym_env(
+        "PickCube-v1",
+        obs_mode="rgb",
+        render_mode="rgb_array",
+        sensor_configs=dict(width=32, height=32),
+        human_render_camera_configs=dict(width=48, height=40),
+    )
     try:
         rgb_key = ("sensor_data", "base_camera", "rgb")
         assert env.observation_spec[rgb_key].shape == (N, 32, 32, 3)

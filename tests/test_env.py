@@ -13,6 +13,7 @@
 Envs are built once per module (about 0.4 s each) and shared; every comparison seeds
 every reset, so the order in which tests use an env does not matter.
 """
+
 from __future__ import annotations
 
 import functools
@@ -341,8 +342,9 @@ def test_equal_to_raw_loop_reset_seed(envs, name):
         raw_recs = []
         for a in actions:
             obs, reward, terminated, truncated, info = raw.step(batched(a))
-            raw_recs.append((clone_tree(obs), reward.clone(), terminated.clone(), truncated.clone(),
-                             clone_tree(tensor_infos(info))))
+            raw_recs.append(
+                (clone_tree(obs), reward.clone(), terminated.clone(), truncated.clone(), clone_tree(tensor_infos(info)))
+            )
             td.set("action", as_td_action(a))
             td = env.step(td)
             kept.append(td["next"])
@@ -574,6 +576,7 @@ def test_step_or_reset_after_close_says_closed():
 def test_num_envs_on_cpu_sim(kwargs):
     if not kwargs and torch.cuda.is_available():
         pytest.skip("sim_backend='auto' picks the GPU sim when CUDA is available")
+
     # On the CPU sim, num_envs > 1 builds a CPUVectorEnv of N workers (tests/test_cpu_vector.py).
     class Built(Exception):
         pass

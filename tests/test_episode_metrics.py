@@ -2,11 +2,13 @@
 on batched envs with partial resets (checked against plain per-env python/numpy references).
 
 Every comparison between two env instances seeds every reset."""
+
 from __future__ import annotations
 
 import numpy as np
 import pytest
 import torch
+from mani_skill.utils.wrappers import CPUGymWrapper
 from tensordict import TensorDict
 from torchrl.envs import Compose, ExcludeTransform, SerialEnv, TransformedEnv
 from torchrl.envs.utils import check_env_specs, step_mdp
@@ -15,8 +17,6 @@ from helpers import bits, make_gym_env, random_actions
 from maniskill_torchrl import CPUUnbatch, EpisodeMetrics, IgnoreTerminations, ManiSkillEnv
 from maniskill_torchrl.transforms import EpisodeMetrics as EpisodeMetricsFromTransforms
 from toy_env import ToyEnv, serial_toy_env
-
-from mani_skill.utils.wrappers import CPUGymWrapper
 
 MAX_STEPS = {"PickCube-v1": 20, "MS-CartpoleBalance-v1": 30}
 SEEDS = [3, 4, 5]
@@ -104,10 +104,18 @@ def _reference(rollout: TensorDict) -> dict:
     success = rollout["next", "success"].numpy()
     fail = rollout["next", "fail"].numpy()
     n_env, n_t = reward.shape
-    out = {k: np.zeros((n_env, n_t), dtype=d) for k, d in [
-        ("return", np.float32), ("episode_len", np.int64), ("reward", np.float32),
-        ("success_once", bool), ("success_at_end", bool), ("fail_once", bool), ("fail_at_end", bool),
-    ]}
+    out = {
+        k: np.zeros((n_env, n_t), dtype=d)
+        for k, d in [
+            ("return", np.float32),
+            ("episode_len", np.int64),
+            ("reward", np.float32),
+            ("success_once", bool),
+            ("success_at_end", bool),
+            ("fail_once", bool),
+            ("fail_at_end", bool),
+        ]
+    }
     for i in range(n_env):
         rewards, successes, fails = [], [], []
         for t in range(n_t):
@@ -211,9 +219,13 @@ def test_specs_and_no_success_fail():
     spec = env.observation_spec["episode"]
     assert spec.shape == torch.Size([2])
     assert {k: spec[k].dtype for k in spec.keys()} == {
-        "return": torch.float32, "episode_len": torch.int64, "reward": torch.float32,
-        "success_once": torch.bool, "success_at_end": torch.bool,
-        "fail_once": torch.bool, "fail_at_end": torch.bool,
+        "return": torch.float32,
+        "episode_len": torch.int64,
+        "reward": torch.float32,
+        "success_once": torch.bool,
+        "success_at_end": torch.bool,
+        "fail_once": torch.bool,
+        "fail_at_end": torch.bool,
     }
     assert not any(v.any() for v in env.reset()["episode"].values())  # zeros at reset
     # A task without success / fail: only return, length and mean reward.

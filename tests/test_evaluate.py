@@ -7,6 +7,7 @@ that episodes differ; training one with ``ppo_torchrl.py`` would cost ~30 s more
 subprocesses side by side (2 sim workers each); the checks of bad checkpoints run
 in-process, where nothing builds a simulator. About 40 s on 2 busy CPU cores.
 """
+
 from __future__ import annotations
 
 import re
@@ -42,10 +43,20 @@ def checkpoint_dict(**overrides) -> dict:
     policy, value = make_models(specs(), HIDDEN, torch.device("cpu"))
     last = [m for m in policy.modules() if isinstance(m, nn.Linear)][-1]
     nn.init.normal_(last.weight, std=0.5)  # large actions: episodes that differ from seed to seed
-    ckpt = {"format": CHECKPOINT_FORMAT, "env_id": ENV_ID, "obs_mode": "state", "control_mode": CONTROL_MODE,
-            "obs_dim": OBS_DIM, "act_dim": ACT_DIM, "hidden": HIDDEN, "repeat": 1,
-            "policy": policy.state_dict(), "value": value.state_dict(),
-            "args": {"env_id": ENV_ID, "hidden": HIDDEN}, "frames": 0}
+    ckpt = {
+        "format": CHECKPOINT_FORMAT,
+        "env_id": ENV_ID,
+        "obs_mode": "state",
+        "control_mode": CONTROL_MODE,
+        "obs_dim": OBS_DIM,
+        "act_dim": ACT_DIM,
+        "hidden": HIDDEN,
+        "repeat": 1,
+        "policy": policy.state_dict(),
+        "value": value.state_dict(),
+        "args": {"env_id": ENV_ID, "hidden": HIDDEN},
+        "frames": 0,
+    }
     ckpt.update(overrides)
     return ckpt
 
@@ -60,8 +71,20 @@ def ckpt_path(tmp_path_factory) -> Path:
 # --------------------------------------------------------------------- end to end
 def test_gym_and_torchrl_backends_agree_and_video(ckpt_path: Path, tmp_path: Path) -> None:
     """3 seeded episodes (2 envs: a full round and a partial one) through both backends at once."""
-    common = [sys.executable, str(EXAMPLES / "evaluate_gym.py"), "--checkpoint", str(ckpt_path),
-              "--num-envs", "2", "--episodes", "3", "--max-episode-steps", "8", "--seed", "5"]
+    common = [
+        sys.executable,
+        str(EXAMPLES / "evaluate_gym.py"),
+        "--checkpoint",
+        str(ckpt_path),
+        "--num-envs",
+        "2",
+        "--episodes",
+        "3",
+        "--max-episode-steps",
+        "8",
+        "--seed",
+        "5",
+    ]
     video = tmp_path / "eval.mp4"
     torchrl_cmd = common + ["--backend", "torchrl"]
     other = subprocess.Popen(torchrl_cmd, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -133,8 +156,11 @@ def test_bad_checkpoint_messages(tmp_path: Path, make, message: str) -> None:
 def test_folder_and_env_id(ckpt_path: Path) -> None:
     assert load_checkpoint(ckpt_path.parent)["path"] == str(ckpt_path)  # the --out folder works too
     assert load_checkpoint(ckpt_path, ENV_ID)["env_id"] == ENV_ID
-    with pytest.raises(CheckpointError, match="was trained on PushCube-v1, not on --env-id PickCube-v1: "
-                                              "a policy only acts on its own task. Drop --env-id"):
+    with pytest.raises(
+        CheckpointError,
+        match="was trained on PushCube-v1, not on --env-id PickCube-v1: "
+        "a policy only acts on its own task. Drop --env-id",
+    ):
         load_checkpoint(ckpt_path, "PickCube-v1")
 
 
@@ -142,9 +168,12 @@ def test_size_mismatches(ckpt_path: Path) -> None:
     ckpt = load_checkpoint(ckpt_path)
     with pytest.raises(CheckpointError, match=r"observation size mismatch: .* expects 35 state values .* gives 42"):
         policy_from_checkpoint(ckpt, specs(obs_dim=42))
-    with pytest.raises(CheckpointError, match=r"action size mismatch: .* outputs 8 actions \(control mode "
-                                              r"pd_joint_delta_pos\), the env built takes 4 \(control mode "
-                                              r"pd_ee_delta_pos\). .* --control-mode pd_joint_delta_pos"):
+    with pytest.raises(
+        CheckpointError,
+        match=r"action size mismatch: .* outputs 8 actions \(control mode "
+        r"pd_joint_delta_pos\), the env built takes 4 \(control mode "
+        r"pd_ee_delta_pos\). .* --control-mode pd_joint_delta_pos",
+    ):
         policy_from_checkpoint(ckpt, specs(act_dim=4), "pd_ee_delta_pos")
     check_sizes(ckpt, OBS_DIM, ACT_DIM)  # matching sizes pass
     wrong_hidden = dict(ckpt, hidden=HIDDEN * 2)  # metadata that does not fit the weights

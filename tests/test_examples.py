@@ -5,6 +5,7 @@ and the test checks its exit code, its printed lines and the files it writes.
 Flag validation runs in-process (no simulator is built). On 2 busy CPU cores
 the whole file takes about a minute and a half; nothing here is skipped.
 """
+
 from __future__ import annotations
 
 import json
@@ -26,13 +27,32 @@ def test_demo_console_script_end_to_end(tmp_path: Path) -> None:
     assert script.exists(), f"console script not installed at {script}: pip install -e . in this venv"
     out = tmp_path / "demo"
     proc = run(
-        [str(script), "demo", "--frames", "200", "--workers", "2", "--video-steps", "4",
-         "--video-size", "64", "--out", str(out), "--no-progress"],
+        [
+            str(script),
+            "demo",
+            "--frames",
+            "200",
+            "--workers",
+            "2",
+            "--video-steps",
+            "4",
+            "--video-size",
+            "64",
+            "--out",
+            str(out),
+            "--no-progress",
+        ],
         cwd=tmp_path,
     )
     stdout = proc.stdout
-    for line in ("maniskill-torchrl demo summary", "frames/s", "episodes finished", "mean return",
-                 "success rate", "ManiSkillEnv(num_envs=2) -> ActionRepeat(2) -> EpisodeMetrics"):
+    for line in (
+        "maniskill-torchrl demo summary",
+        "frames/s",
+        "episodes finished",
+        "mean return",
+        "success rate",
+        "ManiSkillEnv(num_envs=2) -> ActionRepeat(2) -> EpisodeMetrics",
+    ):
         assert line in stdout, f"{line!r} missing from:\n{stdout}"
 
     png = (out / "returns.png").read_bytes()
@@ -61,11 +81,18 @@ def test_demo_console_script_end_to_end(tmp_path: Path) -> None:
 
 def test_demo_no_video_writes_no_video(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys) -> None:
     """``--no-video`` builds no render env; the plot and summary are still written (collection stubbed)."""
-    episodes = [{"return": 1.5, "episode_len": 10, "success_once": True, "success_at_end": True,
-                 "terminated": True}, {"return": 0.5, "episode_len": 25, "success_once": False,
-                 "success_at_end": False, "terminated": False}]
-    stats = {"frames": 100, "sim_steps": 190, "startup_s": 1.0, "frames_per_s": 50.0,
-             "sim_steps_per_s": 95.0, "episodes_finished": 2}
+    episodes = [
+        {"return": 1.5, "episode_len": 10, "success_once": True, "success_at_end": True, "terminated": True},
+        {"return": 0.5, "episode_len": 25, "success_once": False, "success_at_end": False, "terminated": False},
+    ]
+    stats = {
+        "frames": 100,
+        "sim_steps": 190,
+        "startup_s": 1.0,
+        "frames_per_s": 50.0,
+        "sim_steps_per_s": 95.0,
+        "episodes_finished": 2,
+    }
     monkeypatch.setattr(cli.demo, "_collect", lambda *a: (list(episodes), None, dict(stats)))
 
     def no_video(*a, **k):
@@ -157,8 +184,18 @@ def test_ppo_smoke(tmp_path: Path) -> None:
 
 def test_evaluate_gym(tmp_path: Path) -> None:
     proc = run(
-        [sys.executable, str(EXAMPLES / "evaluate_gym.py"), "--num-envs", "2", "--episodes", "2",
-         "--max-episode-steps", "10", "--seed", "1"],
+        [
+            sys.executable,
+            str(EXAMPLES / "evaluate_gym.py"),
+            "--num-envs",
+            "2",
+            "--episodes",
+            "2",
+            "--max-episode-steps",
+            "10",
+            "--seed",
+            "1",
+        ],
         cwd=tmp_path,
     )
     lines = [line for line in proc.stdout.splitlines() if line.startswith("episode ")]
@@ -173,8 +210,16 @@ def test_evaluate_gym(tmp_path: Path) -> None:
 
 def test_migrate_from_maniskill(tmp_path: Path) -> None:
     proc = run(
-        [sys.executable, str(EXAMPLES / "migrate_from_maniskill.py"), "--steps", "12",
-         "--max-episode-steps", "10", "--repeat", "2"],
+        [
+            sys.executable,
+            str(EXAMPLES / "migrate_from_maniskill.py"),
+            "--steps",
+            "12",
+            "--max-episode-steps",
+            "10",
+            "--repeat",
+            "2",
+        ],
         cwd=tmp_path,
     )
     assert "identical: True" in proc.stdout, proc.stdout

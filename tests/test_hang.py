@@ -9,6 +9,7 @@ parent, which holds a SAPIEN renderer (gymnasium builds one env in the parent), 
 deadlock in the Vulkan driver. The script checks that condition before starting the
 ParallelEnv, so it fails in seconds with a message instead of waiting for the timeout.
 """
+
 from __future__ import annotations
 
 import os
@@ -20,7 +21,7 @@ import pytest
 
 TIMEOUT_S = 300  # three engines start on 2 cores: ~40 s when idle
 
-SCRIPT = '''
+SCRIPT = """
 import multiprocessing as mp
 import sys
 import warnings
@@ -85,7 +86,7 @@ if __name__ == "__main__":
     assert td.batch_size == (2, 3), td.batch_size
     env.close()
     print("STAGE batched ok", flush=True)
-'''
+"""
 
 
 def run_sequence(tmp_path: Path, which: str) -> subprocess.CompletedProcess:
@@ -93,8 +94,15 @@ def run_sequence(tmp_path: Path, which: str) -> subprocess.CompletedProcess:
     script.write_text(SCRIPT)
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     try:
-        return subprocess.run([sys.executable, str(script), which], cwd=tmp_path, env=env,
-                              capture_output=True, text=True, timeout=TIMEOUT_S, start_new_session=True)
+        return subprocess.run(
+            [sys.executable, str(script), which],
+            cwd=tmp_path,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=TIMEOUT_S,
+            start_new_session=True,
+        )
     except subprocess.TimeoutExpired as err:
         out = (err.stdout or b"").decode() if isinstance(err.stdout, bytes) else (err.stdout or "")
         pytest.fail(f"the sequence hung (killed after {TIMEOUT_S} s); stdout so far:\n{out[-3000:]}")
@@ -110,7 +118,9 @@ def test_gym_then_parallelenv_then_batched_env(tmp_path: Path, which: str) -> No
         "TorchRL's ParallelEnv would fork a parent holding a SAPIEN renderer: importing maniskill_torchrl "
         f"should have set the 'spawn' start method\n{out[-3000:]}"
     )
-    assert proc.returncode == 0, f"exit {proc.returncode}\n--- stdout ---\n{out[-3000:]}\n--- stderr ---\n{proc.stderr[-3000:]}"
+    assert proc.returncode == 0, (
+        f"exit {proc.returncode}\n--- stdout ---\n{out[-3000:]}\n--- stderr ---\n{proc.stderr[-3000:]}"
+    )
     assert "STAGE gym ok" in out and "STAGE parallel ok" in out, out
     assert "SKIP_BATCHED" not in out, out
     assert "STAGE batched ok" in out, out

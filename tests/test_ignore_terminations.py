@@ -1,4 +1,5 @@
 """IgnoreTerminations: terminated forced False, done = truncated, at every level of done keys."""
+
 from __future__ import annotations
 
 import torch
@@ -12,9 +13,7 @@ from toy_env import ToyEnv
 
 
 def test_cartpole_runs_past_fail_to_time_limit():
-    base = TransformedEnv(
-        ManiSkillEnv("MS-CartpoleBalance-v1", obs_mode="state", max_episode_steps=40), CPUUnbatch()
-    )
+    base = TransformedEnv(ManiSkillEnv("MS-CartpoleBalance-v1", obs_mode="state", max_episode_steps=40), CPUUnbatch())
     env = TransformedEnv(base.base_env, Compose(CPUUnbatch(), IgnoreTerminations()))
     try:
         assert env.output_spec == base.output_spec  # specs unchanged
@@ -42,9 +41,7 @@ def test_cartpole_runs_past_fail_to_time_limit():
 
 
 def test_nested_done_keys_multi_agent():
-    env = TransformedEnv(
-        ToyEnv([2, 4, 3], terminate=[True, False, True], multi_agent=True), IgnoreTerminations()
-    )
+    env = TransformedEnv(ToyEnv([2, 4, 3], terminate=[True, False, True], multi_agent=True), IgnoreTerminations())
     assert env.output_spec == env.base_env.output_spec
     check_env_specs(env)
     roll = env.rollout(6, break_when_any_done=False)

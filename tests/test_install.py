@@ -1,5 +1,6 @@
 """Installation: ManiSkill is the user's choice (release extra or nightly), and without any the
 library says how to install it; the package ships its ``py.typed`` marker."""
+
 from __future__ import annotations
 
 import subprocess

@@ -5,6 +5,7 @@ The toy envs here are plain torch (no ManiSkill); workers start with "spawn" (th
 may hold a SAPIEN renderer from other tests, and then fork is unsafe). One ManiSkill test checks
 the real worker env against an in-process SerialEnv of the same envs.
 """
+
 from __future__ import annotations
 
 import os

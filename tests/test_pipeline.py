@@ -1,5 +1,6 @@
 """``maniskill_torchrl.pipeline.make_env``, the one recipe of the transform stack, and the
 docstring examples of the core modules it rests on."""
+
 from __future__ import annotations
 
 import doctest
@@ -58,9 +59,7 @@ def test_partial_pickles_for_worker_processes():
     assert pickle.loads(pickle.dumps(factory)).func is make_env
 
 
-@pytest.mark.parametrize(
-    "module", [pipeline_module, masked_merge_module, episode_stats_module, numpy_sum_module]
-)
+@pytest.mark.parametrize("module", [pipeline_module, masked_merge_module, episode_stats_module, numpy_sum_module])
 def test_docstring_examples(module):
     result = doctest.testmod(module, optionflags=doctest.ELLIPSIS)
     assert result.attempted > 0 and result.failed == 0, module.__name__

@@ -2,6 +2,7 @@
 real PushCube-v1 transitions, must lower both its critic loss and its clipped surrogate loss.
 A wrong sign, a detached graph, a key the loss does not read or a dead optimiser breaks it.
 Learning itself (success against frames) is a benchmark: benchmarks/RESULTS.md, "PPO"."""
+
 from __future__ import annotations
 
 import sys

@@ -9,6 +9,7 @@ process of the test (Ray's head processes, its workers, the env workers under th
 after ``collector.shutdown()`` and ``ray.shutdown()``. The last test shuts Ray down: keep it
 last. About a minute on 2 cores, mostly actor start-up (each imports torch, TorchRL, ManiSkill).
 """
+
 from __future__ import annotations
 
 import functools
@@ -53,7 +54,7 @@ def _proc_table() -> dict[int, tuple[int, str, int, str]]:
                 cmd = f.read().replace(b"\0", b" ").decode(errors="replace").strip()
         except OSError:
             continue
-        fields = stat[stat.rindex(")") + 2:].split()  # after "pid (comm) "
+        fields = stat[stat.rindex(")") + 2 :].split()  # after "pid (comm) "
         out[int(name)] = (int(fields[1]), fields[0], int(fields[19]), cmd)
     return out
 
@@ -80,8 +81,11 @@ def _ray_named(table) -> set[tuple[int, int]]:
 
 def _still_alive(procs: set[tuple[int, int]]) -> dict[int, str]:
     table = _proc_table()
-    return {pid: table[pid][3][:120] for pid, start in procs if pid in table and table[pid][2] == start
-            and table[pid][1] != "Z"}
+    return {
+        pid: table[pid][3][:120]
+        for pid, start in procs
+        if pid in table and table[pid][2] == start and table[pid][1] != "Z"
+    }
 
 
 # ------------------------------------------------------------------------------- fixtures
@@ -106,8 +110,9 @@ def ex():
 
 def _collector(ex, policy, env_fn, collectors: int, frames_per_batch: int, total_frames: int):
     # Ray is already initialised (cluster): TorchRL uses that instance and does not shut it down.
-    return ex.make_collector(policy, collectors=collectors, frames_per_batch=frames_per_batch,
-                             total_frames=total_frames, env_fn=env_fn)
+    return ex.make_collector(
+        policy, collectors=collectors, frames_per_batch=frames_per_batch, total_frames=total_frames, env_fn=env_fn
+    )
 
 
 def _bounded(fn, limit: float = TIME_LIMIT_S):
@@ -143,9 +148,17 @@ def test_two_remote_collectors_frames_entries_and_weights(cluster, ex) -> None:
             batches += 1
             assert batch.shape == torch.Size([2, fpb // 2])  # sync: one slice per remote collector
             assert batch.numel() == fpb
-            for key in ("observation", "action", "policy_version", ("next", "observation"), ("next", "reward"),
-                        ("next", "done"), ("next", "terminated"), ("next", "truncated"),
-                        ("collector", "traj_ids")):
+            for key in (
+                "observation",
+                "action",
+                "policy_version",
+                ("next", "observation"),
+                ("next", "reward"),
+                ("next", "done"),
+                ("next", "terminated"),
+                ("next", "truncated"),
+                ("collector", "traj_ids"),
+            ):
                 assert key in batch.keys(True), key
             assert batch["next", "reward"].shape == (2, fpb // 2, 1)
             assert batch["next", "done"].dtype == torch.bool
@@ -164,7 +177,9 @@ def test_two_remote_collectors_frames_entries_and_weights(cluster, ex) -> None:
                 starts = [0] + [e + 1 for e in ends[:-1]]
                 for s, e in zip(starts, ends):
                     if i == 0 or s > 0:  # a whole episode inside this batch
-                        torch.testing.assert_close(ep["return"][c, e], rewards[c, s:e + 1].sum(), rtol=1e-5, atol=1e-5)
+                        torch.testing.assert_close(
+                            ep["return"][c, e], rewards[c, s : e + 1].sum(), rtol=1e-5, atol=1e-5
+                        )
             # the remote side ran the weights pushed before this batch
             assert batch["policy_version"].unique().tolist() == [i]
             with torch.no_grad():

@@ -1,4 +1,5 @@
 """gymnasium spaces and ManiSkill info dicts -> TorchRL specs (no simulator needed)."""
+
 from __future__ import annotations
 
 import gymnasium as gym
@@ -71,9 +72,7 @@ def test_nested_dict():
             qvel=gym.spaces.Box(-np.inf, np.inf, (9,), np.float32),
         ),
         extra=gym.spaces.Dict(is_grasped=gym.spaces.Box(0, 1, (), dtype=bool)),
-        sensor_data=gym.spaces.Dict(
-            base_camera=gym.spaces.Dict(rgb=gym.spaces.Box(0, 255, (8, 8, 3), np.uint8))
-        ),
+        sensor_data=gym.spaces.Dict(base_camera=gym.spaces.Dict(rgb=gym.spaces.Box(0, 255, (8, 8, 3), np.uint8))),
     )
     spec = observation_spec_from_space(space, B, CPU)
     assert isinstance(spec, Composite) and spec.shape == B

@@ -5,6 +5,7 @@ in lockstep (ManiSkill's outputs may alias buffers that later steps mutate), wit
 the same actions and a seed on every reset, and checks values by bits, dtypes,
 shapes and python types recursively (:func:`assert_same`).
 """
+
 from __future__ import annotations
 
 import doctest
@@ -62,8 +63,7 @@ def env_pair() -> Callable[..., tuple[gym.Env, gym.Env]]:
         key = (task, obs_mode, max_episode_steps)
         if key not in cache:
             cache[key] = tuple(
-                make_gym_env(task, obs_mode=obs_mode, max_episode_steps=max_episode_steps)
-                for _ in range(2)
+                make_gym_env(task, obs_mode=obs_mode, max_episode_steps=max_episode_steps) for _ in range(2)
             )
         return cache[key]
 
@@ -372,9 +372,7 @@ def test_sync_vector_env():
 def test_async_vector_env_forkserver():
     """Thunks pickle and run in forkserver workers (the default fork context hangs with SAPIEN).
     The workers import the wrapper's module when unpickling the thunk, which registers the tasks."""
-    venvs = [
-        gym.vector.AsyncVectorEnv(_thunks(cls), context="forkserver") for cls in (MSCPUGymWrapper, CPUGymWrapper)
-    ]
+    venvs = [gym.vector.AsyncVectorEnv(_thunks(cls), context="forkserver") for cls in (MSCPUGymWrapper, CPUGymWrapper)]
     try:
         _compare_vector(venvs, episodes=2)
     finally:

@@ -37,6 +37,7 @@ Examples:
     >>> td["next", "done"].squeeze(-1).tolist()
     [[True, True, True], [False, False, True]]
 """
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -127,9 +128,7 @@ class ToyEnv(EnvBase):
                 done=flag(),
                 terminated=flag(),
                 truncated=flag(),
-                agents=Composite(
-                    done=agent_flag(), terminated=agent_flag(), truncated=agent_flag(), shape=b + (2,)
-                ),
+                agents=Composite(done=agent_flag(), terminated=agent_flag(), truncated=agent_flag(), shape=b + (2,)),
                 shape=b,
             )
         else:
@@ -177,11 +176,7 @@ class ToyEnv(EnvBase):
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         reset = tensordict.get("_reset", None) if tensordict is not None else None
-        mask = (
-            torch.ones(self.batch_size, dtype=torch.bool)
-            if reset is None
-            else reset.reshape(self.batch_size)
-        )
+        mask = torch.ones(self.batch_size, dtype=torch.bool) if reset is None else reset.reshape(self.batch_size)
         self.t = self.t.masked_fill(mask, 0)
         self.reset_count = self.reset_count + mask.long()
         out = self._obs(None)
@@ -189,9 +184,7 @@ class ToyEnv(EnvBase):
         out.update(done=zeros, terminated=zeros.clone(), truncated=zeros.clone())
         if self.multi_agent:
             z = torch.zeros(self.batch_size + (2, 1), dtype=torch.bool)
-            out["agents"] = TensorDict(
-                done=z, terminated=z.clone(), truncated=z.clone(), batch_size=z.shape[:-1]
-            )
+            out["agents"] = TensorDict(done=z, terminated=z.clone(), truncated=z.clone(), batch_size=z.shape[:-1])
         return TensorDict(out, batch_size=self.batch_size, device=self.device)
 
     def _set_seed(self, seed: int | None) -> None:  # deterministic: nothing to seed
@@ -215,11 +208,7 @@ def serial_toy_env(
     if isinstance(terminate, bool):
         terminate = [terminate] * len(ends)
     fns = [
-        (
-            lambda e=int(e), k=bool(k), i=i: ToyEnv(
-                e, terminate=k, ids=i, done_once=done_once, multi_agent=multi_agent
-            )
-        )
+        (lambda e=int(e), k=bool(k), i=i: ToyEnv(e, terminate=k, ids=i, done_once=done_once, multi_agent=multi_agent))
         for i, (e, k) in enumerate(zip(ends, terminate))
     ]
     return SerialEnv(len(ends), fns, **serial_kwargs)

@@ -11,6 +11,7 @@ video and a JSON summary.
 - :mod:`~maniskill_torchrl.cli.report`: the summary, the plot and the video;
 - :mod:`~maniskill_torchrl.cli.scripted_policy`: the demo's policies.
 """
+
 from __future__ import annotations
 
 import os

@@ -7,6 +7,7 @@ one worker process per env) under ``ActionRepeat -> EpisodeMetrics``
 it sees one step per agent decision, so ``episode_len`` counts agent steps, and the
 repeated rewards arrive already summed.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -53,12 +54,23 @@ def run_demo(args: argparse.Namespace) -> int:
 
     files = {"plot": str(out / "returns.png")}
     try:
-        plot_returns(episodes, out / "returns.png", title=f"{args.env_id}: {policy_name} policy, "
-                     f"{args.workers} workers, ActionRepeat({args.repeat})")
+        plot_returns(
+            episodes,
+            out / "returns.png",
+            title=f"{args.env_id}: {policy_name} policy, {args.workers} workers, ActionRepeat({args.repeat})",
+        )
         if not args.no_video:
             video_path = out / "rollout.mp4"
-            n = record_video(args.env_id, args.repeat, env_kwargs, policy_name, video_path,
-                             steps=args.video_steps, size=args.video_size, seed=args.seed)
+            n = record_video(
+                args.env_id,
+                args.repeat,
+                env_kwargs,
+                policy_name,
+                video_path,
+                steps=args.video_steps,
+                size=args.video_size,
+                seed=args.seed,
+            )
             files["video"] = str(video_path)
             stats["video_frames"] = n
     finally:
@@ -110,8 +122,14 @@ def _collect(args: argparse.Namespace, policy_name: str, env_kwargs: dict[str, A
     episodes: list[dict[str, Any]] = []
     frames = sim_steps = 0
     t_first = None
-    bar = tqdm(total=total_frames, unit="frame", desc="collecting", disable=args.no_progress,
-               dynamic_ncols=True, file=sys.stderr)
+    bar = tqdm(
+        total=total_frames,
+        unit="frame",
+        desc="collecting",
+        disable=args.no_progress,
+        dynamic_ncols=True,
+        file=sys.stderr,
+    )
     try:
         for batch in collector:
             if t_first is None:
@@ -135,14 +153,18 @@ def _collect(args: argparse.Namespace, policy_name: str, env_kwargs: dict[str, A
         closer.start()
     steady_s = t_end - t_first
     steady_frames = frames - first_frames
-    return episodes, closer, {
-        "frames": frames,
-        "sim_steps": sim_steps,
-        "startup_s": round(startup_s, 2),
-        "frames_per_s": round(steady_frames / steady_s, 1) if steady_frames else None,
-        "sim_steps_per_s": round(steady_frames / steady_s * sim_steps / frames, 1) if steady_frames else None,
-        "episodes_finished": len(episodes),
-    }
+    return (
+        episodes,
+        closer,
+        {
+            "frames": frames,
+            "sim_steps": sim_steps,
+            "startup_s": round(startup_s, 2),
+            "frames_per_s": round(steady_frames / steady_s, 1) if steady_frames else None,
+            "sim_steps_per_s": round(steady_frames / steady_s * sim_steps / frames, 1) if steady_frames else None,
+            "episodes_finished": len(episodes),
+        },
+    )
 
 
 def _shutdown(collector, env) -> None:

@@ -1,4 +1,5 @@
 """The ``maniskill-torchrl`` flags: the argument parser and the checks argparse cannot make flag by flag."""
+
 from __future__ import annotations
 
 import argparse
@@ -58,22 +59,28 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     demo.add_argument("--env-id", default=DEFAULT_ENV, help="ManiSkill task id")
-    demo.add_argument("--repeat", type=_positive_int, default=2,
-                      help="ActionRepeat: sim steps per agent step")
-    demo.add_argument("--frames", type=_positive_int, default=3000,
-                      help="agent steps to collect over all workers (rounded up to whole batches)")
-    demo.add_argument("--workers", type=_positive_int, default=2,
-                      help="CPU envs (num_envs), one worker process each")
+    demo.add_argument("--repeat", type=_positive_int, default=2, help="ActionRepeat: sim steps per agent step")
+    demo.add_argument(
+        "--frames",
+        type=_positive_int,
+        default=3000,
+        help="agent steps to collect over all workers (rounded up to whole batches)",
+    )
+    demo.add_argument("--workers", type=_positive_int, default=2, help="CPU envs (num_envs), one worker process each")
     demo.add_argument("--out", type=Path, default=Path("outputs/demo"), help="output folder")
     demo.add_argument("--seed", type=_seed, default=0, help="seed of envs and policy")
-    demo.add_argument("--policy", choices=("auto", "scripted", "random"), default="auto",
-                      help="'scripted' is a pick-and-place controller for PickCube-v1; "
-                           "'auto' uses it there and random actions elsewhere")
+    demo.add_argument(
+        "--policy",
+        choices=("auto", "scripted", "random"),
+        default="auto",
+        help="'scripted' is a pick-and-place controller for PickCube-v1; "
+        "'auto' uses it there and random actions elsewhere",
+    )
     demo.add_argument("--no-video", action="store_true", help="skip the rollout video")
-    demo.add_argument("--video-steps", type=_positive_int, default=48,
-                      help="agent steps in the rollout video")
-    demo.add_argument("--video-size", type=_positive_int, default=DEFAULT_VIDEO_SIZE,
-                      help="video width and height in pixels")
+    demo.add_argument("--video-steps", type=_positive_int, default=48, help="agent steps in the rollout video")
+    demo.add_argument(
+        "--video-size", type=_positive_int, default=DEFAULT_VIDEO_SIZE, help="video width and height in pixels"
+    )
     demo.add_argument("--no-progress", action="store_true", help="no progress bar")
     demo.set_defaults(subparser=demo)
     return parser

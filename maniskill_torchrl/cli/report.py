@@ -1,4 +1,5 @@
 """What the demo leaves behind: the summary table, the returns plot and the rollout video."""
+
 from __future__ import annotations
 
 import sys
@@ -35,8 +36,10 @@ def print_summary(summary: dict[str, Any]) -> None:
 
     rows = [
         ("env", f"{summary['env_id']} (CPU sim), {summary['policy']} policy"),
-        ("pipeline", f"ManiSkillEnv(num_envs={summary['workers']}) -> ActionRepeat({summary['repeat']}) "
-                     "-> EpisodeMetrics"),
+        (
+            "pipeline",
+            f"ManiSkillEnv(num_envs={summary['workers']}) -> ActionRepeat({summary['repeat']}) -> EpisodeMetrics",
+        ),
         ("frames (agent steps)", f"{summary['frames']}"),
         ("sim steps", f"{summary['sim_steps']}"),
         ("start-up + 1st batch", fmt(summary["startup_s"], ".1f", " s")),
@@ -75,16 +78,20 @@ def plot_returns(episodes: Sequence[dict[str, Any]], path: Path, title: str) -> 
     fig, ax = plt.subplots(figsize=(7, 3.5), dpi=100)
     if returns:
         xs = range(1, len(returns) + 1)
-        ax.scatter(xs, returns, s=12, c=["tab:green" if s else "tab:gray" for s in success],
-                   label="episode (green: success)")
+        ax.scatter(
+            xs, returns, s=12, c=["tab:green" if s else "tab:gray" for s in success], label="episode (green: success)"
+        )
         k = max(1, len(returns) // 10)
-        running = [sum(returns[max(0, i - k + 1): i + 1]) / len(returns[max(0, i - k + 1): i + 1])
-                   for i in range(len(returns))]
+        running = [
+            sum(returns[max(0, i - k + 1) : i + 1]) / len(returns[max(0, i - k + 1) : i + 1])
+            for i in range(len(returns))
+        ]
         ax.plot(xs, running, color="tab:blue", label=f"running mean ({k})")
         ax.legend(loc="best", fontsize=8)
     else:
-        ax.text(0.5, 0.5, "no episode finished: collect more --frames", ha="center", va="center",
-                transform=ax.transAxes)
+        ax.text(
+            0.5, 0.5, "no episode finished: collect more --frames", ha="center", va="center", transform=ax.transAxes
+        )
     ax.set_xlabel("finished episode")
     ax.set_ylabel("return")
     ax.set_title(title, fontsize=9)

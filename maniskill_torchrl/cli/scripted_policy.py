@@ -1,4 +1,5 @@
 """The demo's policies: a scripted pick-and-place controller for PickCube-v1, or random actions."""
+
 from __future__ import annotations
 
 from typing import Any
@@ -39,9 +40,7 @@ class PickCubeScriptedPolicy(nn.Module):
         self.noise = float(noise)
         self._gen = torch.Generator().manual_seed(seed)
 
-    def forward(
-        self, tcp_to_obj: torch.Tensor, obj_to_goal: torch.Tensor, is_grasped: torch.Tensor
-    ) -> torch.Tensor:
+    def forward(self, tcp_to_obj: torch.Tensor, obj_to_goal: torch.Tensor, is_grasped: torch.Tensor) -> torch.Tensor:
         grasped = is_grasped.bool().unsqueeze(-1)
         aligned = tcp_to_obj[..., :2].norm(dim=-1, keepdim=True) <= self.ALIGN
         hover = torch.zeros_like(tcp_to_obj)

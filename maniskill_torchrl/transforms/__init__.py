@@ -1,4 +1,5 @@
 """TorchRL transforms for ManiSkill envs."""
+
 from maniskill_torchrl.transforms.action_repeat import ActionRepeat
 from maniskill_torchrl.transforms.cpu_unbatch import CPUUnbatch
 from maniskill_torchrl.transforms.episode_metrics import EpisodeMetrics

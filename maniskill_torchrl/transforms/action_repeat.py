@@ -1,4 +1,5 @@
 """Masked action repeat as a TorchRL transform."""
+
 from __future__ import annotations
 
 from tensordict import TensorDictBase
@@ -107,9 +108,7 @@ class ActionRepeat(Transform):
         self._cache = None
         super().empty_cache()
 
-    def _step(
-        self, tensordict: TensorDictBase, next_tensordict: TensorDictBase
-    ) -> TensorDictBase:
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         if self.repeat == 1:
             return next_tensordict
         td, self._stash = self._stash, None
@@ -160,9 +159,7 @@ class _ParentInfo:
         self.done_keys = list(parent.done_keys)
         # An env ends when a "done" entry is set (TorchRL keeps done = terminated | truncated at
         # every level); fall back to every done entry where no key is named "done".
-        self.stop_keys = [
-            k for k in self.done_keys if (k if isinstance(k, str) else k[-1]) == "done"
-        ] or self.done_keys
+        self.stop_keys = [k for k in self.done_keys if (k if isinstance(k, str) else k[-1]) == "done"] or self.done_keys
         self.state_keys = list(parent.full_state_spec.keys(True, True))
         base: EnvBase = parent
         while isinstance(base, TransformedEnv):

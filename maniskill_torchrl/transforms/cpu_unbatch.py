@@ -1,4 +1,5 @@
 """One CPU ManiSkill env (batch ``[1]``) as an unbatched TorchRL env (batch ``[]``)."""
+
 from __future__ import annotations
 
 import torch
@@ -94,9 +95,7 @@ class CPUUnbatch(BatchSizeTransform):
             parent = self.parent
             if parent is not None:
                 self._check_parent(parent)
-            raise ValueError(
-                f"CPUUnbatch needs a parent env with batch_size [1], got {list(batch_size)}."
-            )
+            raise ValueError(f"CPUUnbatch needs a parent env with batch_size [1], got {list(batch_size)}.")
         return torch.Size([])
 
     def transform_output_spec(self, output_spec: Composite) -> Composite:
@@ -132,9 +131,7 @@ class CPUUnbatch(BatchSizeTransform):
                 tensordict.set(key, val.unsqueeze(0))
         return tensordict
 
-    def _reset(
-        self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase
-    ) -> TensorDictBase:
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         if tensordict_reset.batch_dims == 0:
             # A no-op reset ("_reset" all False): the parent handed back our unbatched
             # input and TorchRL filled in the parent's [1, 1] done flags; unbatch those.

@@ -1,4 +1,5 @@
 """Per-env episode metrics (return, length, success / fail) as a TorchRL transform."""
+
 from __future__ import annotations
 
 import torch
@@ -82,9 +83,7 @@ class EpisodeMetrics(Transform):
                 + ". For several agents, sum their rewards into one entry first."
             )
         has_success, has_fail = self._flags()
-        self._stats = EpisodeStats(
-            parent.batch_size, parent.device, has_success=has_success, has_fail=has_fail
-        )
+        self._stats = EpisodeStats(parent.batch_size, parent.device, has_success=has_success, has_fail=has_fail)
         self._reward_key = reward_keys[0]
         self._reset_keys = list(parent.reset_keys)
         return self._stats
@@ -112,9 +111,7 @@ class EpisodeMetrics(Transform):
         return observation_spec
 
     # ----------------------------------------------------------- data
-    def _step(
-        self, tensordict: TensorDictBase, next_tensordict: TensorDictBase
-    ) -> TensorDictBase:
+    def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         stats = self._stats
         if stats is None:
             stats = self._make_stats()
@@ -140,9 +137,7 @@ class EpisodeMetrics(Transform):
             mask = reset if mask is None else mask | reset
         return mask
 
-    def _reset(
-        self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase
-    ) -> TensorDictBase:
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         stats = self._stats
         if stats is None:
             stats = self._make_stats()
@@ -154,9 +149,7 @@ class EpisodeMetrics(Transform):
             # Zeros for the envs being reset, the others keep their running values. No
             # ``mask.all()`` shortcut: on the GPU sim it would sync the host at every reset.
             stats.reset(mask)
-            episode = self._last.apply(
-                lambda last, zero: torch.where(mask, zero, last), stats.zeros()
-            )
+            episode = self._last.apply(lambda last, zero: torch.where(mask, zero, last), stats.zeros())
         self._last = episode
         tensordict_reset.set("episode", episode)
         return tensordict_reset

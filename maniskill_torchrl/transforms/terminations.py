@@ -1,4 +1,5 @@
 """Run every episode to its time limit: terminations are dropped."""
+
 from __future__ import annotations
 
 import torch
@@ -49,15 +50,11 @@ class IgnoreTerminations(Transform):
         groups = self.__dict__.get("_groups_val")
         if groups is None:
             parent = self.parent
-            key_groups = parent.done_keys_groups if parent is not None else [
-                ["done", "terminated", "truncated"]
-            ]
+            key_groups = parent.done_keys_groups if parent is not None else [["done", "terminated", "truncated"]]
             groups = []
             for group in key_groups:
                 by_name = {_last(k): k for k in group}
-                groups.append(
-                    (by_name.get("terminated"), by_name.get("truncated"), by_name.get("done"))
-                )
+                groups.append((by_name.get("terminated"), by_name.get("truncated"), by_name.get("done")))
             self.__dict__["_groups_val"] = groups
         return groups
 
@@ -88,9 +85,7 @@ class IgnoreTerminations(Transform):
 
     forward = _call
 
-    def _reset(
-        self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase
-    ) -> TensorDictBase:
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         # Same rule at reset (envs built with allow_done_after_reset may report done there).
         return self._call(tensordict_reset)
 

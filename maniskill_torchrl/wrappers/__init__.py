@@ -8,6 +8,7 @@
 Both give ManiSkill's outputs bit for bit, on the same core as the TorchRL
 transforms (:mod:`maniskill_torchrl.masked_merge`, :mod:`maniskill_torchrl.episode_stats`).
 """
+
 from maniskill_torchrl.wrappers.action_repeat import ActionRepeatWrapper
 from maniskill_torchrl.wrappers.gymnasium import CPUGymWrapper
 

@@ -1,4 +1,5 @@
 """Boundary helpers of the gym shim: ManiSkill env checks and torch -> unbatched numpy."""
+
 from __future__ import annotations
 
 from typing import Any

@@ -6,6 +6,7 @@ outputs stay the same. The inner steps are merged by
 :func:`maniskill_torchrl.masked_merge.keep_where`, the rule of the TorchRL
 ``ActionRepeat`` transform, directly on ManiSkill's dicts.
 """
+
 from __future__ import annotations
 
 from typing import Any

@@ -6,6 +6,7 @@ flags, infos and ``info["episode"]`` stay the same, value for value and type for
 type. The episode metrics come from :class:`maniskill_torchrl.episode_stats.EpisodeStats`,
 the same code as the TorchRL ``EpisodeMetrics`` transform.
 """
+
 from __future__ import annotations
 
 from typing import Any, SupportsFloat
@@ -139,9 +140,7 @@ class CPUGymWrapper(_ManiSkillCPUGymWrapper):
     def _episode(self, reward: Any, info: dict) -> dict[str, Any]:
         stats = self._stats
         if stats is None:
-            stats = self._stats = EpisodeStats(
-                (1,), has_success="success" in info, has_fail="fail" in info
-            )
+            stats = self._stats = EpisodeStats((1,), has_success="success" in info, has_fail="fail" in info)
             self._layouts = {ignore: _gym_layout(stats.fields, ignore) for ignore in (False, True)}
         ep = stats.update(_tensor(reward), _tensor(info.get("success")), _tensor(info.get("fail")))
         # Key order and python / numpy types as ManiSkill's CPUGymWrapper.
@@ -150,9 +149,7 @@ class CPUGymWrapper(_ManiSkillCPUGymWrapper):
             for name, as_numpy in self._layouts[bool(self.ignore_terminations)]
         }
 
-    def reset(
-        self, *, seed: int | None = None, options: dict[str, Any] | None = None
-    ) -> tuple[Any, dict[str, Any]]:
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict[str, Any]]:
         obs, info = self.env.reset(seed=seed, options=options)
         if self._stats is not None:
             self._stats.reset()

@@ -22,6 +22,7 @@ check of the test code itself, nothing about the GPU path; with N > 1 the tests 
 ManiSkill gym env under ManiSkill's wrappers skip, and partial resets are seeded, as the
 library's batched CPU env does).
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -32,11 +33,11 @@ import warnings
 from collections import Counter
 
 import gymnasium as gym
+import mani_skill.envs  # noqa: F401  (registers the tasks)
 import numpy as np
 import pytest
 import torch
 
-import mani_skill.envs  # noqa: F401  (registers the tasks)
 from helpers import assert_same, clone_tree
 
 CUDA = torch.cuda.is_available()
@@ -222,10 +223,11 @@ def attribute_sync(stack: list[traceback.FrameSummary]) -> tuple[str, traceback.
     or SAPIEN), else ``torchrl`` (TorchRL or tensordict code that the user's loop called; the
     deciding frame is then TorchRL's innermost one) or ``user`` (the example or test code)."""
     import mani_skill
-    import maniskill_torchrl
     import sapien
     import tensordict
     import torchrl
+
+    import maniskill_torchrl
 
     lib, ms = _prefix(maniskill_torchrl), (_prefix(mani_skill), _prefix(sapien))
     rl = (_prefix(torchrl), _prefix(tensordict))

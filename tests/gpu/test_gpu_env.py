@@ -19,6 +19,7 @@ MS-CartpoleBalance-v1 (random actions make envs fail at different steps: partial
 
 Skipped without CUDA (``bash scripts/gpu_check.sh`` runs them on an accelerator machine).
 """
+
 from __future__ import annotations
 
 import pytest
@@ -159,8 +160,11 @@ def _raw_loop(genv, acts, seeds: list[int]) -> list[dict]:
 
 def _first_difference(a: list[dict], b: list[dict]) -> str | None:
     for t, (ra, rb) in enumerate(zip(a, b)):
-        for name, x, y in (("obs", ra["out"][0], rb["out"][0]), ("reward", ra["out"][1], rb["out"][1]),
-                           ("prev", ra["prev"], rb["prev"])):
+        for name, x, y in (
+            ("obs", ra["out"][0], rb["out"][0]),
+            ("reward", ra["out"][1], rb["out"][1]),
+            ("prev", ra["prev"], rb["prev"]),
+        ):
             if not torch.equal(x, y):
                 n = int((x != y).reshape(x.shape[0], -1).any(-1).sum()) if x.ndim else 1
                 return f"step {t} {name}: {n} envs differ (max abs diff {float((x - y).abs().max()):.3g})"
@@ -198,8 +202,10 @@ def test_equal_to_independent_raw_loop(task):
     _, raw_b = _raw_run(task, n, seeds)
     diff = _first_difference(raw_a, raw_b)
     if diff is not None:
-        pytest.skip(f"ManiSkill's {'GPU' if CUDA else 'CPU'} sim did not reproduce its own run across two "
-                    f"instances ({diff}); test_lockstep_equal_to_maniskill_calls checks the wrapper instead")
+        pytest.skip(
+            f"ManiSkill's {'GPU' if CUDA else 'CPU'} sim did not reproduce its own run across two "
+            f"instances ({diff}); test_lockstep_equal_to_maniskill_calls checks the wrapper instead"
+        )
     raise failure
 
 

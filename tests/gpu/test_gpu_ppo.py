@@ -14,6 +14,7 @@ library's sync sites are printed and recorded as junit properties.
 
 Skipped without CUDA (``bash scripts/gpu_check.sh`` runs it on an accelerator machine).
 """
+
 from __future__ import annotations
 
 import importlib.util
@@ -40,16 +41,26 @@ def test_ppo_collector_iterations_without_per_step_host_sync(tmp_path, record_pr
     ppo = _load_example()
     frames = NUM_ENVS * STEPS
     argv = [
-        "--env-id", "PushCube-v1",
-        "--device", "cuda" if CUDA else "cpu",
-        "--num-envs", str(NUM_ENVS),
-        "--num-steps", str(STEPS),
-        "--total-frames", str(frames * ITERATIONS),
-        "--epochs", "1",
-        "--minibatch-size", str(max(frames // 2, 1)),
-        "--max-episode-steps", str(EPISODE_STEPS),
-        "--eval-every", "0",  # evaluation has its own tests (test_evaluate.py); here: the training loop
-        "--out", str(tmp_path),
+        "--env-id",
+        "PushCube-v1",
+        "--device",
+        "cuda" if CUDA else "cpu",
+        "--num-envs",
+        str(NUM_ENVS),
+        "--num-steps",
+        str(STEPS),
+        "--total-frames",
+        str(frames * ITERATIONS),
+        "--epochs",
+        "1",
+        "--minibatch-size",
+        str(max(frames // 2, 1)),
+        "--max-episode-steps",
+        str(EPISODE_STEPS),
+        "--eval-every",
+        "0",  # evaluation has its own tests (test_evaluate.py); here: the training loop
+        "--out",
+        str(tmp_path),
     ]
     if not CUDA:  # the CPU check of this test's code: the GPU configuration's code path on one env
         argv += ["--vec", "batched", "--hidden", "16"]

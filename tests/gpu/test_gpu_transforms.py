@@ -31,11 +31,14 @@ the library's transform over a :class:`~gpu_helpers.Replay` of the very same inn
 
 Skipped without CUDA (``bash scripts/gpu_check.sh`` runs them on an accelerator machine).
 """
+
 from __future__ import annotations
 
 import numpy as np
 import pytest
 import torch
+from mani_skill.utils.wrappers import ActionRepeatWrapper
+from mani_skill.vector.wrappers.gymnasium import ManiSkillVectorEnv
 from torchrl.envs import Compose, TransformedEnv
 
 from gpu_helpers import (
@@ -54,9 +57,6 @@ from gpu_helpers import (
 )
 from helpers import assert_same, clone_tree, tensor_infos
 from maniskill_torchrl import ActionRepeat, EpisodeMetrics, IgnoreTerminations
-
-from mani_skill.utils.wrappers import ActionRepeatWrapper
-from mani_skill.vector.wrappers.gymnasium import ManiSkillVectorEnv
 
 pytestmark = requires_gpu
 
@@ -159,9 +159,11 @@ def test_action_repeat_equals_maniskill_wrapper(task, repeat):
             ended = ended | te | tr
         early_ends += int(ended.sum())
         short_steps += k < repeat
-    print(f"{task} repeat={repeat}: {len(got)} outer steps, {sum(map(len, inner_steps))} inner steps, "
-          f"{early_ends} env episodes ended before the batch's last inner step, {short_steps} outer "
-          f"steps cut short, {aliased} elapsed_steps values aliased to ManiSkill's live counter")
+    print(
+        f"{task} repeat={repeat}: {len(got)} outer steps, {sum(map(len, inner_steps))} inner steps, "
+        f"{early_ends} env episodes ended before the batch's last inner step, {short_steps} outer "
+        f"steps cut short, {aliased} elapsed_steps values aliased to ManiSkill's live counter"
+    )
     if task == "PushCube-v1":  # the 11-step limit ends episodes mid-repeat
         assert short_steps + early_ends > 0, "episodes should end mid-repeat (the limit is no multiple of the repeat)"
     elif NUM_ENVS > 1:
@@ -217,8 +219,10 @@ def test_episode_metrics_equal_maniskill_vector_env(task):
         for key in ("success_once", "success_at_end", "fail_once", "fail_at_end"):
             if key in ms.keys():
                 assert_same(mine[key], ms[key], f"step {t}: {key}")
-        expected = np.array([np.sum(np.ascontiguousarray(rewards[start[i]: t + 1, i])) for i in range(rewards.shape[1])],
-                            dtype=np.float32)
+        expected = np.array(
+            [np.sum(np.ascontiguousarray(rewards[start[i] : t + 1, i])) for i in range(rewards.shape[1])],
+            dtype=np.float32,
+        )
         assert_same(mine["return"].cpu(), torch.from_numpy(expected), f"step {t}: return vs numpy.sum")
         short = length < 8
         assert_same(mine["return"][short], ms["return"][short], f"step {t}: return (episodes under 8 steps)")
