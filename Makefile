@@ -27,7 +27,7 @@ setup:
 	@MANISKILL=$(MANISKILL) bash scripts/setup.sh
 
 test: setup lint
-	$(VENV)/bin/python -m pytest -q tests $(PYTEST_ARGS)
+	$(VENV)/bin/python -m pytest -q --durations=15 tests $(PYTEST_ARGS)
 
 test-nightly:
 	@$(MAKE) --no-print-directory test MANISKILL=nightly
