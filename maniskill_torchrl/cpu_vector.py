@@ -206,13 +206,20 @@ class CPUVectorEnv:
         maniskill_kwargs.setdefault("sim_backend", "physx_cpu")
         self.num_envs = int(num_envs)
         self.device = torch.device("cpu")
-        self._vec = AsyncVectorEnv(
-            [_MakeWorker(env_id, maniskill_kwargs)] * self.num_envs,
-            shared_memory=True,
-            copy=False,  # we copy once, into torch
-            context=context,
-            autoreset_mode=AutoresetMode.DISABLED,
-        )
+        try:
+            self._vec = AsyncVectorEnv(
+                [_MakeWorker(env_id, maniskill_kwargs)] * self.num_envs,
+                shared_memory=True,
+                copy=False,  # we copy once, into torch
+                context=context,
+                autoreset_mode=AutoresetMode.DISABLED,
+            )
+        except (EOFError, ConnectionError) as err:  # a worker died before gymnasium's own error handling
+            raise RuntimeError(
+                f"CPUVectorEnv({env_id!r}, {num_envs}): a worker process died while starting (its traceback is "
+                f"printed above). Workers start with context={context!r}, which imports the main script again: "
+                "in a script, build envs only under `if __name__ == '__main__':`."
+            ) from err
         space = self._vec.single_observation_space
         self.single_observation_space = space[_OBS]
         self.single_action_space = self._vec.single_action_space

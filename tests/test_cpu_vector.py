@@ -306,3 +306,16 @@ def test_bad_input():
             TransformedEnv(env, CPUUnbatch())
     finally:
         env.close()
+
+
+def test_script_without_main_guard_gets_a_clear_error(tmp_path) -> None:
+    """forkserver workers import the main script again: without a guard they die while starting."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "no_guard.py"
+    script.write_text('from maniskill_torchrl import ManiSkillEnv\nManiSkillEnv("PushCube-v1", num_envs=2)\n')
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=240)
+    assert proc.returncode != 0
+    assert "a worker process died while starting" in proc.stderr, proc.stderr[-3000:]
+    assert "if __name__ == '__main__':" in proc.stderr, proc.stderr[-3000:]
