@@ -61,9 +61,10 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 from common import (  # noqa: E402
     ProcessContender,
-    alternate_processes,
+    add_alternation_args,
     child_result,
     machine_line,
+    run_alternating,
     save_json,
 )
 
@@ -356,27 +357,7 @@ def main(argv: list[str] | None = None) -> int:
         "--pipelines", nargs="+", default=DEFAULT_PIPELINES, help=f"contenders (default {' '.join(DEFAULT_PIPELINES)})"
     )
     p.add_argument("--out", "--json", dest="out", default=None, help="write all results as JSON here")
-    p.add_argument("--timeout", type=float, default=240.0, help="per child process (killed after)")
-    p.add_argument(
-        "--max-busy",
-        type=float,
-        default=0.3,
-        help="before each run, wait until other processes use fewer cores than this (default 0.3)",
-    )
-    p.add_argument(
-        "--max-wait",
-        type=float,
-        default=60.0,
-        help="longest wait for that, in seconds; 0 turns the wait off (default 60)",
-    )
-    p.add_argument(
-        "--max-others",
-        type=float,
-        default=0.25,
-        help="a run during which other processes kept more cores busy than this is run again (default 0.25)",
-    )
-    p.add_argument("--retries", type=int, default=2, help="re-runs of a disturbed run (default 2)")
-    p.add_argument("-q", "--quiet", action="store_true", help="no per-run lines")
+    add_alternation_args(p, retries=2)
     p.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
 
@@ -411,16 +392,7 @@ def main(argv: list[str] | None = None) -> int:
         for n in args.n
         for spec in specs
     ]
-    results = alternate_processes(
-        contenders,
-        rounds=args.rounds,
-        timeout=args.timeout,
-        cwd=os.path.dirname(HERE),
-        verbose=not args.quiet,
-        quiet=(args.max_busy, args.max_wait) if args.max_wait > 0 else None,
-        accept=lambda r: r.get("others_cores", 0.0) <= args.max_others,
-        retries=args.retries,
-    )
+    results = run_alternating(contenders, args, cwd=os.path.dirname(HERE))
     took = time.perf_counter() - t0
     table = fmt_table(results, specs, args.n, args.repeat)
     print(

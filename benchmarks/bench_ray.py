@@ -33,7 +33,14 @@ import time
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 from bench_collection import ENV_ID, EPISODE, SEED, _CPUMeter, _quiet, _time_collector, _worker_env  # noqa: E402
-from common import ProcessContender, alternate_processes, child_result, machine_line, save_json  # noqa: E402
+from common import (  # noqa: E402
+    ProcessContender,
+    add_alternation_args,
+    child_result,
+    machine_line,
+    run_alternating,
+    save_json,
+)
 
 PIPELINES = ["multisync", "ray"]
 
@@ -128,22 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seconds", type=float, default=5.0, help="timed collection per run (default 5)")
     p.add_argument("--num-cpus", type=int, default=2, help="CPUs of the local Ray instance (default 2)")
     p.add_argument("--out", "--json", dest="out", default=None, help="write all results as JSON here")
-    p.add_argument("--timeout", type=float, default=240.0, help="per child process (killed after)")
-    p.add_argument(
-        "--max-busy",
-        type=float,
-        default=0.3,
-        help="before each run, wait until other processes use fewer cores than this (default 0.3)",
-    )
-    p.add_argument("--max-wait", type=float, default=60.0, help="longest wait for that, s; 0: no wait (default 60)")
-    p.add_argument(
-        "--max-others",
-        type=float,
-        default=0.25,
-        help="re-run a run during which other processes kept more cores busy (default 0.25)",
-    )
-    p.add_argument("--retries", type=int, default=1, help="re-runs of a disturbed run (default 1)")
-    p.add_argument("-q", "--quiet", action="store_true", help="no per-run lines")
+    add_alternation_args(p, retries=1)
     p.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
 
@@ -178,16 +170,7 @@ def main(argv: list[str] | None = None) -> int:
         for k in args.k
         for kind in PIPELINES
     ]
-    results = alternate_processes(
-        contenders,
-        rounds=args.rounds,
-        timeout=args.timeout,
-        cwd=os.path.dirname(HERE),
-        verbose=not args.quiet,
-        quiet=(args.max_busy, args.max_wait) if args.max_wait > 0 else None,
-        accept=lambda r: r.get("others_cores", 0.0) <= args.max_others,
-        retries=args.retries,
-    )
+    results = run_alternating(contenders, args, cwd=os.path.dirname(HERE))
     took = time.perf_counter() - t0
     print(
         f"\n{ENV_ID} state, random actions, episodes of {EPISODE} steps, one ManiSkillEnv -> CPUUnbatch per "

@@ -40,6 +40,7 @@ Example::
 
 from __future__ import annotations
 
+import argparse
 import datetime as _dt
 import gc
 import json
@@ -555,3 +556,42 @@ def alternate_processes(
                     flush=True,
                 )
     return results
+
+
+def add_alternation_args(p: argparse.ArgumentParser, retries: int = 2) -> None:
+    """The flags of :func:`run_alternating`: rounds' process limits and the quiet-machine checks."""
+    p.add_argument("--timeout", type=float, default=240.0, help="per child process (killed after)")
+    p.add_argument(
+        "--max-busy",
+        type=float,
+        default=0.3,
+        help="before each run, wait until other processes use fewer cores than this (default 0.3)",
+    )
+    p.add_argument(
+        "--max-wait",
+        type=float,
+        default=60.0,
+        help="longest wait for that, in seconds; 0 turns the wait off (default 60)",
+    )
+    p.add_argument(
+        "--max-others",
+        type=float,
+        default=0.25,
+        help="a run during which other processes kept more cores busy than this is run again (default 0.25)",
+    )
+    p.add_argument("--retries", type=int, default=retries, help=f"re-runs of a disturbed run (default {retries})")
+    p.add_argument("-q", "--quiet", action="store_true", help="no per-run lines")
+
+
+def run_alternating(contenders: list, args: argparse.Namespace, cwd: str) -> dict:
+    """:func:`alternate_processes` with the flags of :func:`add_alternation_args` (and ``--rounds``)."""
+    return alternate_processes(
+        contenders,
+        rounds=args.rounds,
+        timeout=args.timeout,
+        cwd=cwd,
+        verbose=not args.quiet,
+        quiet=(args.max_busy, args.max_wait) if args.max_wait > 0 else None,
+        accept=lambda r: r.get("others_cores", 0.0) <= args.max_others,
+        retries=args.retries,
+    )
