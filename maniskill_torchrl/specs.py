@@ -10,7 +10,7 @@ with the same key paths.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, NamedTuple
 
 import gymnasium as gym
 import numpy as np
@@ -28,9 +28,15 @@ __all__ = [
     "space_to_spec",
     "observation_spec_from_space",
     "info_spec_from_infos",
+    "pixels_spec",
     "done_spec",
     "reward_spec",
+    "EnvSpecs",
+    "env_specs",
 ]
+
+# Top-level tensordict keys that an info entry must not take (it becomes "info_<key>").
+_RESERVED_KEYS = frozenset({"reward", "done", "terminated", "truncated", "action"})
 
 
 def _torch_dtype(dtype: Any) -> torch.dtype:
@@ -121,6 +127,17 @@ def info_spec_from_infos(infos: Mapping[str, Any], batch_size: torch.Size, devic
     return out
 
 
+def pixels_spec(batch_size: torch.Size, frame_shape: tuple[int, ...], device: torch.device) -> Bounded:
+    """``pixels``: ``[*batch, H, W, 3]`` uint8 frames of ``frame_shape`` ``(H, W, 3)``."""
+    return Bounded(
+        low=0,
+        high=255,
+        shape=torch.Size(batch_size) + torch.Size(frame_shape),
+        dtype=torch.uint8,
+        device=device,
+    )
+
+
 def done_spec(batch_size: torch.Size, device: torch.device) -> Composite:
     """``done``, ``terminated`` and ``truncated``, each ``[*batch, 1]`` bool."""
     shape = torch.Size(batch_size) + (1,)
@@ -136,3 +153,55 @@ def done_spec(batch_size: torch.Size, device: torch.device) -> Composite:
 def reward_spec(batch_size: torch.Size, device: torch.device) -> Unbounded:
     """``reward``: ``[*batch, 1]`` float32."""
     return Unbounded(shape=torch.Size(batch_size) + (1,), dtype=torch.float32, device=device)
+
+
+class EnvSpecs(NamedTuple):
+    """The specs of one ManiSkill env, as :func:`env_specs` builds them."""
+
+    observation: Composite
+    """Observations, ``"pixels"`` and infos."""
+    action: Composite
+    """The full action spec: ``"action"`` (a Box space) or ``("action", <agent>)`` entries (a Dict space)."""
+    reward: Unbounded
+    done: Composite
+    info_map: list[tuple[str, str]]
+    """``(info key, tensordict key)`` for every declared info entry."""
+
+
+def env_specs(
+    obs_space: gym.Space,
+    act_space: gym.Space,
+    infos: Mapping[str, Any],
+    batch_size: torch.Size,
+    device: torch.device,
+    *,
+    frame_shape: tuple[int, ...] | None = None,
+    pixels_only: bool = False,
+) -> EnvSpecs:
+    """Every spec of a ManiSkill env from its single-env spaces and an info dict.
+
+    The observation spec holds the observation space's entries (none with ``pixels_only``),
+    ``"pixels"`` when a ``frame_shape`` is given, and the tensor entries of ``infos``
+    (:func:`info_spec_from_infos`); an info key that collides with an observation key or with
+    ``reward`` / ``done`` / ``terminated`` / ``truncated`` / ``action`` is declared as ``"info_<key>"``.
+    """
+    batch_size = torch.Size(batch_size)
+    obs_spec = observation_spec_from_space(obs_space, batch_size, device)
+    if pixels_only:
+        obs_spec = Composite(shape=batch_size, device=device)
+    if frame_shape is not None:
+        obs_spec["pixels"] = pixels_spec(batch_size, frame_shape, device)
+    info_spec = info_spec_from_infos(infos, batch_size, device)
+    reserved = set(obs_spec.keys()) | _RESERVED_KEYS
+    info_map: list[tuple[str, str]] = []
+    for key in info_spec.keys():
+        td_key = f"info_{key}" if key in reserved else key
+        obs_spec[td_key] = info_spec[key]
+        info_map.append((key, td_key))
+    return EnvSpecs(
+        observation=obs_spec,
+        action=Composite(action=space_to_spec(act_space, batch_size, device), shape=batch_size, device=device),
+        reward=reward_spec(batch_size, device),
+        done=done_spec(batch_size, device),
+        info_map=info_map,
+    )

@@ -1,0 +1,113 @@
+"""What :class:`~maniskill_torchrl.ManiSkillWrapper` refuses, and how it says so: its arguments,
+unknown info keys, a step without its action, a call after ``close()`` (where TorchRL or a closed
+ManiSkill sim would fail with unrelated errors).
+
+Private to the library (not exported from :mod:`maniskill_torchrl`); no TorchRL import.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import torch
+
+from maniskill_torchrl._maniskill import maniskill_base_env
+from maniskill_torchrl.cpu_vector import CPUVectorEnv
+
+__all__ = ["checked_base_env", "check_info_keys", "MissingActionError", "action_error", "ClosedEnv"]
+
+
+def checked_base_env(env: Any, device: Any, *, from_pixels: bool, pixels_only: bool) -> Any:
+    """The ManiSkill env (or :class:`CPUVectorEnv`) under ``env``, after checking the wrapper's arguments."""
+    if env is None:
+        raise TypeError(
+            "ManiSkillWrapper needs a ManiSkill env: ManiSkillWrapper(gym.make('PickCube-v1')) "
+            "or ManiSkillEnv('PickCube-v1')."
+        )
+    base = env if isinstance(env, CPUVectorEnv) else maniskill_base_env(env)
+    if base is None:
+        raise TypeError(
+            f"ManiSkillWrapper wraps ManiSkill 3 envs only, got {type(env).__name__} "
+            f"(unwrapped: {type(getattr(env, 'unwrapped', env)).__name__}). Make one with "
+            "gym.make('<Task>-v1', ...) after `import mani_skill.envs`, or CPUVectorEnv('<Task>-v1', N) "
+            "for N CPU-sim envs; for other gym envs use torchrl.envs.GymWrapper."
+        )
+    env_device = torch.device(base.device)
+    if device is not None and torch.device(device) != env_device:
+        raise ValueError(
+            f"device={device} differs from the ManiSkill env's device {env_device}. "
+            "Make the env on the device you want (sim_backend='gpu' for CUDA) or omit device: "
+            "this wrapper does not copy data between devices."
+        )
+    if pixels_only and not from_pixels:
+        raise ValueError("pixels_only=True needs from_pixels=True.")
+    if from_pixels and base.render_mode != "rgb_array":
+        raise ValueError(
+            f"from_pixels=True needs an env made with render_mode='rgb_array' (got render_mode={base.render_mode!r})."
+        )
+    return base
+
+
+def check_info_keys(info_keys: list[str], infos: Mapping[str, Any], base: Any) -> None:
+    """Every one of ``info_keys`` must be in ``base.get_info()`` (``infos``)."""
+    missing = [k for k in info_keys if k not in infos]
+    if missing:
+        raise ValueError(
+            f"info_keys {missing} are not reported by {base.spec.id if base.spec else base}: "
+            f"available info keys are {sorted(infos)}."
+        )
+
+
+class MissingActionError(KeyError):
+    """A KeyError whose message prints as written (KeyError prints the repr of its argument)."""
+
+    def __str__(self) -> str:
+        return str(self.args[0])
+
+
+def action_error(
+    env_name: str,
+    key: str | tuple[str, str],
+    action: torch.Tensor | None,
+    expected: torch.Size,
+    entries: list[Any],
+    action_keys: list[Any],
+) -> Exception:
+    """The error of ``env.step(td)`` when ``td`` has no entry at the action ``key`` (``action`` is
+    ``None``; ``entries`` are the keys ``td`` has) or one of another shape than ``expected``."""
+    if action is None:
+        return MissingActionError(
+            f"{env_name}.step() found no action at {key!r} in the tensordict, whose entries are "
+            f"{entries}. Set the action entries {action_keys} (shapes from env.full_action_spec), e.g. "
+            "td = env.rand_action(td) for random actions, or run a policy that writes them."
+        )
+    if isinstance(key, tuple):
+        return ValueError(f"ManiSkill action {key[1]!r} of shape {tuple(action.shape)}, expected {tuple(expected)}.")
+    return ValueError(
+        f"ManiSkill action of shape {tuple(action.shape)}, expected "
+        f"{tuple(expected)} ([num_envs, *single_action_space.shape])."
+    )
+
+
+class ClosedEnv:
+    """Takes the ManiSkill env's place after ``close()``: stepping, resetting or rendering says that
+    the env is closed (a closed ManiSkill sim fails with unrelated AttributeErrors)."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+
+    def _closed(self, *args: Any, **kwargs: Any) -> Any:
+        raise RuntimeError(
+            f"{self.name} is closed: it cannot step, reset or render any more. "
+            "Make a new env (ManiSkillEnv(...) or ManiSkillWrapper(gym.make(...))) instead of reusing a closed one."
+        )
+
+    step = reset = render = _closed
+
+    @property
+    def unwrapped(self) -> Any:
+        return self._closed()
+
+    def close(self) -> None:
+        return None

@@ -1,0 +1,102 @@
+""":class:`ManiSkillEnv`: makes a ManiSkill 3 task (``gym.make``, or a :class:`CPUVectorEnv` of
+worker processes for several CPU-sim envs) and wraps it as a TorchRL env."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import torch
+from torchrl.data.utils import DEVICE_TYPING
+
+from maniskill_torchrl._maniskill import enable_physx_gpu, registered_env_ids, similar_env_ids
+from maniskill_torchrl.cpu_vector import CPUVectorEnv
+from maniskill_torchrl.maniskill_wrapper import ManiSkillWrapper
+
+__all__ = ["ManiSkillEnv"]
+
+_CPU_BACKENDS = ("cpu", "physx_cpu")
+
+
+class ManiSkillEnv(ManiSkillWrapper):
+    """Makes a ManiSkill task with ``gym.make`` and wraps it as a TorchRL env.
+
+    Args:
+        env_id (str): a registered ManiSkill task, e.g. ``"PickCube-v1"``.
+
+    Keyword Args:
+        num_envs (int): parallel envs, the batch size. On the GPU sim, one
+            simulator; on the CPU sim (``sim_backend="cpu"``, or ``"auto"``
+            without CUDA), which holds one env per process, ``num_envs > 1``
+            runs one worker process per env
+            (:class:`~maniskill_torchrl.cpu_vector.CPUVectorEnv`, gymnasium's
+            ``AsyncVectorEnv`` underneath) with the same keys, specs and dtypes.
+        from_pixels (bool): add ``"pixels"`` (sets ``render_mode="rgb_array"``).
+        pixels_only, info_keys, device, allow_done_after_reset: as in
+            :class:`ManiSkillWrapper`.
+        **maniskill_kwargs: passed to ``gym.make`` (``obs_mode``,
+            ``control_mode``, ``sim_backend``, ``render_mode``,
+            ``max_episode_steps``...).
+
+    Examples:
+        >>> from maniskill_torchrl import ManiSkillEnv
+        >>> env = ManiSkillEnv("PickCube-v1", obs_mode="state_dict")
+        >>> env.observation_spec["agent", "qpos"].shape
+        torch.Size([1, 9])
+        >>> td = env.rand_step(env.reset())
+        >>> td["next", "reward"].shape
+        torch.Size([1, 1])
+    """
+
+    def __init__(
+        self,
+        env_id: str,
+        *,
+        num_envs: int = 1,
+        device: DEVICE_TYPING | None = None,
+        from_pixels: bool = False,
+        pixels_only: bool = False,
+        info_keys: list[str] | None = None,
+        allow_done_after_reset: bool = False,
+        **maniskill_kwargs: Any,
+    ) -> None:
+        if env_id not in registered_env_ids():
+            close = similar_env_ids(env_id)
+            raise ValueError(
+                f"Unknown ManiSkill env id {env_id!r}. "
+                + (f"Did you mean one of {close}? " if close else "")
+                + "ManiSkillEnv.available_envs lists the registered tasks."
+            )
+        if not isinstance(num_envs, int) or num_envs < 1:
+            raise ValueError(f"num_envs must be a positive int, got {num_envs!r}.")
+        if from_pixels:
+            maniskill_kwargs.setdefault("render_mode", "rgb_array")
+        self._env_id = env_id
+        backend = str(maniskill_kwargs.get("sim_backend", "auto")).lower()
+        # ManiSkill's "auto" is the CPU sim for one env; for more, the GPU sim when there is CUDA.
+        on_cpu = backend in _CPU_BACKENDS or (backend == "auto" and (num_envs == 1 or not torch.cuda.is_available()))
+        if num_envs > 1 and on_cpu:
+            # The CPU sim holds one env per process: one worker process per env.
+            maniskill_kwargs["sim_backend"] = "physx_cpu"
+            env = CPUVectorEnv(env_id, num_envs, **maniskill_kwargs)
+        else:
+            if not on_cpu:
+                if not torch.cuda.is_available():
+                    raise ValueError(
+                        f"sim_backend={maniskill_kwargs['sim_backend']!r} is ManiSkill's GPU sim, which needs "
+                        "CUDA, and torch.cuda.is_available() is False: use sim_backend='cpu' (or 'auto')."
+                    )
+                enable_physx_gpu()
+            env = gym.make(env_id, num_envs=num_envs, **maniskill_kwargs)
+        super().__init__(
+            env,
+            device=device,
+            from_pixels=from_pixels,
+            pixels_only=pixels_only,
+            info_keys=info_keys,
+            allow_done_after_reset=allow_done_after_reset,
+        )
+
+    @property
+    def env_id(self) -> str:
+        return self._env_id

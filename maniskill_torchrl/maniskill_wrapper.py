@@ -1,0 +1,326 @@
+""":class:`ManiSkillWrapper`: a ManiSkill 3 env made with ``gym.make`` as a native TorchRL env.
+
+ManiSkill returns batched torch tensors (``[num_envs, ...]``) on the simulation
+device; :class:`ManiSkillWrapper` puts them into TensorDicts as they are: no
+numpy round trips, no host copies, one TensorDict built per step. Its specs come
+from :func:`maniskill_torchrl.specs.env_specs`; :class:`~maniskill_torchrl.ManiSkillEnv`
+(``maniskill_env.py``) builds the ManiSkill env too.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from collections.abc import Mapping
+from types import ModuleType
+from typing import TYPE_CHECKING, Any
+
+import gymnasium as gym
+import torch
+from tensordict import TensorDictBase
+from torchrl.data.utils import DEVICE_TYPING
+
+from maniskill_torchrl._maniskill import render_frame_shape, wrapper_attr
+from maniskill_torchrl._private import EnvWrapper, classproperty, new_tensordict
+from maniskill_torchrl.cpu_vector import CPUVectorEnv
+from maniskill_torchrl.errors import ClosedEnv, action_error, check_info_keys, checked_base_env
+from maniskill_torchrl.seeding import ResetSeeds
+from maniskill_torchrl.specs import env_specs
+
+if TYPE_CHECKING:
+    from mani_skill.envs.sapien_env import BaseEnv
+
+__all__ = ["ManiSkillWrapper"]
+
+_has_maniskill = importlib.util.find_spec("mani_skill") is not None
+
+
+class ManiSkillWrapper(EnvWrapper):
+    """A TorchRL env around a ManiSkill 3 env made with ``gym.make``.
+
+    The batch is ManiSkill's ``num_envs`` and the device is the simulation's
+    device (``cpu`` for the CPU sim, ``cuda`` for the GPU sim). Each step
+    builds one TensorDict from ManiSkill's own tensors:
+
+    - a Box observation space goes to ``"observation"``; a Dict observation
+      space (``state_dict``, ``rgb``, ``rgbd``, ``sensor_data``...) keeps its
+      nested key paths and dtypes (images stay uint8);
+    - a Box action space reads ``"action"``; a Dict action space (multi-agent
+      tasks such as TwoRobotPickCube-v1) reads ``("action", <agent>)`` entries;
+    - ``reward`` is ``[B, 1]`` float32; ``terminated`` / ``truncated`` /
+      ``done`` are ``[B, 1]`` bool (truncation is ManiSkill's time limit);
+    - the task's tensor infos (``success``, ``fail``, ``elapsed_steps``...) are
+      top-level entries declared in the observation spec, so collectors and
+      batched envs keep them. They are learnt from ``env.unwrapped.get_info()``
+      without stepping or resetting the env. An info key that collides with an
+      observation key is stored as ``"info_<key>"``.
+
+    Seeding: after :meth:`set_seed(s) <set_seed>` the next full reset calls
+    ManiSkill's ``reset(seed=s)``; every later full reset is seeded with the next
+    draw of ``numpy.random.RandomState(s)``, so a whole run is reproducible
+    from ``s``. ``env.reset(seed=s)`` seeds one reset directly. Partial resets
+    (a ``"_reset"`` mask that is not all True) reset only those envs through
+    ``options={"env_idx": ...}``: unseeded on the GPU sim, as ManiSkill does; on a
+    :class:`~maniskill_torchrl.cpu_vector.CPUVectorEnv` seeded with the next draw
+    ``d`` (sub-env ``i`` gets ``d + i``), so that CPU runs stay reproducible from
+    ``s`` whatever each worker's global torch RNG holds.
+
+    Several CPU envs: wrap a :class:`~maniskill_torchrl.cpu_vector.CPUVectorEnv`
+    (``ManiSkillEnv(env_id, num_envs=N)`` does it on the CPU sim): one worker
+    process per env, the same batch ``[N]``, keys, specs and dtypes as the GPU sim.
+
+    Partial steps: ManiSkill steps all of its envs together (the GPU sim, and
+    the CPU workers of a ``CPUVectorEnv``, which gymnasium steps all at once),
+    so a ``"_step"`` mask is not honoured by this env (use a
+    :class:`~torchrl.envs.ParallelEnv` of single CPU envs for that).
+
+    Args:
+        env: a ManiSkill env, ``gym.make("PickCube-v1", ...)``, possibly
+            wrapped in further gym wrappers.
+
+    Keyword Args:
+        device: must be the env's device if given (no silent copies).
+        from_pixels (bool): add a ``"pixels"`` entry rendered with
+            ``env.render()`` at every reset and step; the env must have been
+            made with ``render_mode="rgb_array"``.
+        pixels_only (bool): keep only ``"pixels"`` as observation.
+        info_keys (list of str, optional): the info entries to keep; defaults to
+            every tensor entry of ``env.unwrapped.get_info()``.
+        allow_done_after_reset (bool): passed to :class:`~torchrl.envs.EnvBase`.
+
+    Examples:
+        >>> import gymnasium as gym
+        >>> import mani_skill.envs  # registers the tasks
+        >>> from maniskill_torchrl import ManiSkillWrapper
+        >>> env = ManiSkillWrapper(gym.make("PickCube-v1", num_envs=1, obs_mode="state"))
+        >>> env.set_seed(0)
+        >>> td = env.rollout(3)
+        >>> td["next", "observation"].shape, td["next", "success"].shape
+        (torch.Size([1, 3, 42]), torch.Size([1, 3]))
+    """
+
+    git_url = "https://github.com/haosulab/ManiSkill"
+    libname = "mani_skill"
+
+    @classproperty
+    def available_envs(cls) -> list[str]:
+        if not _has_maniskill:
+            return []
+        from mani_skill.utils.registration import REGISTERED_ENVS
+
+        return sorted(REGISTERED_ENVS)
+
+    @classproperty
+    def lib(cls) -> ModuleType:
+        import mani_skill
+
+        return mani_skill
+
+    def __init__(
+        self,
+        env: Any = None,
+        *,
+        device: DEVICE_TYPING | None = None,
+        from_pixels: bool = False,
+        pixels_only: bool = False,
+        info_keys: list[str] | None = None,
+        allow_done_after_reset: bool = False,
+        **kwargs: Any,
+    ) -> None:
+        base = checked_base_env(env, device, from_pixels=from_pixels, pixels_only=pixels_only)
+        self._seeds_partial_resets = isinstance(base, CPUVectorEnv)
+        self._from_pixels = bool(from_pixels)
+        self._pixels_only = bool(pixels_only)
+        self._requested_info_keys = info_keys
+        self._seeds = ResetSeeds()
+        super().__init__(
+            env=env,
+            device=torch.device(base.device),
+            batch_size=torch.Size([base.num_envs]),
+            allow_done_after_reset=allow_done_after_reset,
+            **kwargs,
+        )
+
+    # ------------------------------------------------------------------ build
+    def _check_kwargs(self, kwargs: dict[str, Any]) -> None:
+        if "env" not in kwargs:
+            raise TypeError("Expected an 'env' keyword argument.")
+
+    def _build_env(self, env: Any, **kwargs: Any) -> Any:
+        if kwargs:
+            raise TypeError(f"Unexpected arguments for ManiSkillWrapper: {sorted(kwargs)}")
+        return env
+
+    def _init_env(self) -> None:
+        return None
+
+    @property
+    def base_env(self) -> BaseEnv | CPUVectorEnv:
+        """The ManiSkill ``BaseEnv`` (``env.unwrapped``), or the wrapped :class:`CPUVectorEnv`."""
+        return self._env.unwrapped
+
+    @property
+    def gpu_sim_enabled(self) -> bool:
+        return bool(self._env.unwrapped.gpu_sim_enabled)
+
+    def _make_specs(self, env: Any) -> None:
+        base = env.unwrapped
+        obs_space = wrapper_attr(env, "single_observation_space")
+        act_space = wrapper_attr(env, "single_action_space")
+        frame_shape = None
+        if self._from_pixels:
+            frame_shape = base.render_frame_shape() if isinstance(base, CPUVectorEnv) else render_frame_shape(base)
+        specs = env_specs(
+            obs_space,
+            act_space,
+            self._infos(base),
+            self.batch_size,
+            self.device,
+            frame_shape=frame_shape,
+            pixels_only=self._pixels_only,
+        )
+        self._obs_is_dict = isinstance(obs_space, gym.spaces.Dict)
+        self._info_map: list[tuple[str, str]] = specs.info_map
+        action_spec = specs.action["action"]
+        self._action_names = list(act_space.spaces.keys()) if isinstance(act_space, gym.spaces.Dict) else None
+        self._action_shapes = (
+            {k: action_spec[k].shape for k in self._action_names}
+            if self._action_names is not None
+            else action_spec.shape
+        )
+        self.observation_spec = specs.observation
+        self.full_action_spec = specs.action
+        self.reward_spec = specs.reward
+        self.done_spec = specs.done
+
+    def _infos(self, base: Any) -> dict[str, Any]:
+        """The info entries to declare: ``info_keys`` (checked) or all of them."""
+        # From get_info(): a probe step or reset would change what later seeded resets give.
+        infos = base.get_info()
+        if self._requested_info_keys is None:
+            return infos
+        check_info_keys(self._requested_info_keys, infos, base)
+        return {k: infos[k] for k in self._requested_info_keys}
+
+    # ------------------------------------------------------------------ data
+    def _render_batched(self, frame: Any) -> torch.Tensor:
+        frame = torch.as_tensor(frame, device=self.device)
+        if frame.ndim == 3:
+            frame = frame.unsqueeze(0)
+        return frame
+
+    def _to_tensordict(self, obs: Any, info: Mapping[str, Any]) -> dict:
+        if self._pixels_only:
+            source = {}
+        elif self._obs_is_dict:
+            source = dict(obs)
+        else:
+            source = {"observation": obs}
+        # Info tensors may alias ManiSkill's buffers (elapsed_steps is updated in place): clone them.
+        for key, td_key in self._info_map:
+            source[td_key] = info[key].clone()
+        if self._from_pixels:
+            source["pixels"] = self._render_batched(self._env.render())
+        return source
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = tensordict.get("action", None)
+        if action is None:
+            raise self._action_error(tensordict, "action", None)
+        if self._action_names is None:
+            if action.shape != self._action_shapes:
+                raise self._action_error(tensordict, "action", action)
+        else:
+            action = {k: action.get(k, None) for k in self._action_names}
+            for k, a in action.items():
+                if a is None or a.shape != self._action_shapes[k]:
+                    raise self._action_error(tensordict, ("action", k), a)
+        obs, reward, terminated, truncated, info = self._env.step(action)
+        source = self._to_tensordict(obs, info)
+        # ManiSkill gives [B] tensors: unsqueeze is the cheapest way to [B, 1] (view(shape) costs
+        # twice as much on the CPU sim, where each op counts); other shapes go through view.
+        done = torch.logical_or(terminated, truncated)
+        if reward.ndim == terminated.ndim == truncated.ndim == 1:
+            source["reward"] = reward.unsqueeze(-1)
+            source["terminated"] = terminated.unsqueeze(-1)
+            source["truncated"] = truncated.unsqueeze(-1)
+            source["done"] = done.unsqueeze(-1)
+        else:
+            shape = self.batch_size + (1,)
+            source["reward"] = reward.view(shape)
+            source["terminated"] = terminated.view(shape)
+            source["truncated"] = truncated.view(shape)
+            source["done"] = done.view(shape)
+        return new_tensordict(source, batch_size=self.batch_size, device=self.device)
+
+    def _action_error(self, tensordict: TensorDictBase, key: str | tuple[str, str], action: Any) -> Exception:
+        expected = self._action_shapes[key[1]] if isinstance(key, tuple) else self._action_shapes
+        keys = sorted(tensordict.keys(include_nested=True, leaves_only=True), key=str)
+        return action_error(type(self).__name__, key, action, expected, keys, self.action_keys)
+
+    def _step_proc_data(self, next_tensordict_out: TensorDictBase) -> TensorDictBase:
+        # _step already writes reward and the three done entries with their spec shapes and dtypes,
+        # so EnvBase's reshaping and done completion have nothing to do: skip them (a measurable
+        # share of the per-step overhead on the CPU sim). Type checks still run when asked for.
+        if self.run_type_checks:
+            return super()._step_proc_data(next_tensordict_out)
+        return next_tensordict_out
+
+    def _reset(
+        self,
+        tensordict: TensorDictBase | None = None,
+        *,
+        seed: int | None = None,
+        options: dict | None = None,
+        **kwargs: Any,
+    ) -> TensorDictBase:
+        if kwargs:
+            raise TypeError(f"Unexpected reset arguments: {sorted(kwargs)}")
+        options = dict(options) if options else {}
+        reset = tensordict.get("_reset", None) if tensordict is not None else None
+        if reset is not None:
+            reset = reset.reshape(self.batch_size)
+            if not reset.any():
+                return tensordict.exclude("_reset")
+            if not reset.all():
+                options["env_idx"] = reset.nonzero().squeeze(-1)
+        if "env_idx" not in options:
+            if seed is not None:
+                self._seeds.set(seed)
+            seed = self._seeds.draw()
+        elif self._seeds_partial_resets:
+            # CPU sub-envs restart from drawn seeds too: reproducible from set_seed, whatever
+            # each worker process's global torch RNG holds (unseeded ManiSkill resets draw from it).
+            seed = self._seeds.draw() if seed is None else seed
+        obs, info = self._env.reset(seed=seed, options=options)
+        source = self._to_tensordict(obs, info)
+        return new_tensordict(source, batch_size=self.batch_size, device=self.device)
+
+    def _set_seed(self, seed: int | None) -> None:
+        self._seeds.set(seed)
+
+    # -------------------------------------------------------------- misc
+    def render(self) -> Any:
+        """ManiSkill's ``render()`` (batched ``[B, H, W, 3]`` uint8 tensor for ``rgb_array``)."""
+        return self._env.render()
+
+    def close(self, *, raise_if_closed: bool = True) -> None:
+        env = self.__dict__.get("_env")
+        if env is not None and not isinstance(env, ClosedEnv):
+            # A stand-in that says the env is closed: a closed ManiSkill sim fails with AttributeErrors.
+            self._env = ClosedEnv(f"{type(self).__name__}({self._env_name(env)})")
+            env.close()
+        super().close(raise_if_closed=raise_if_closed)
+
+    @staticmethod
+    def _env_name(env: Any) -> str:
+        spec = getattr(env.unwrapped, "spec", None)
+        return spec.id if spec is not None else type(env.unwrapped).__name__
+
+    def __repr__(self) -> str:
+        if isinstance(self._env, ClosedEnv):
+            return f"{self._env.name} (closed)"
+        name = self._env_name(self._env)
+        return (
+            f"{type(self).__name__}(env={name}, num_envs={self.batch_size[0]}, "
+            f"device={self.device}, gpu_sim={self.gpu_sim_enabled})"
+        )
