@@ -61,6 +61,8 @@ from torchrl.objectives.value import GAE
 from maniskill_torchrl.pipeline import make_env as make_pipeline
 
 CHECKPOINT_FORMAT = "maniskill_torchrl.ppo.v1"
+# GAE's "terminated" entry under --bootstrap-at-done always: False everywhere, so no done stops the bootstrap.
+NO_TERMINATION = "no_termination"
 
 warnings.filterwarnings("ignore", message=".*precision lowered by casting.*")
 
@@ -199,6 +201,10 @@ def make_objective(
 ) -> tuple[GAE, ClipPPOLoss, torch.optim.Optimizer]:
     """GAE, the clipped PPO loss (normalised advantages, L2 critic) and its Adam optimiser."""
     advantage = GAE(gamma=args.gamma, lmbda=args.lmbda, value_network=value, average_gae=False)
+    if args.bootstrap_at_done == "always":
+        # ManiSkill's baseline bootstraps every done, success terminations included, from the value of
+        # the final observation: GAE then reads its "terminated" from an all-False entry (see train()).
+        advantage.set_keys(terminated=NO_TERMINATION)
     loss_module = ClipPPOLoss(
         policy,
         value,
@@ -211,6 +217,54 @@ def make_objective(
     )
     optim = torch.optim.Adam(loss_module.parameters(), lr=args.lr, eps=1e-5)
     return advantage, loss_module, optim
+
+
+@torch.no_grad()
+def estimate_advantage(args: argparse.Namespace, advantage: GAE, batch: TensorDictBase) -> None:
+    """Writes GAE's ``"advantage"`` and ``"value_target"`` into ``batch``.
+
+    ``--bootstrap-at-done always`` (ManiSkill's baseline) bootstraps from the final observation's
+    value at every done: a success termination must not look like the end of all future reward,
+    or the policy learns to hover short of success. GAE's ``"terminated"`` is then an all-False
+    entry; ``"done"`` still cuts the lambda-return between episodes."""
+    if args.bootstrap_at_done == "always":
+        batch.set(("next", NO_TERMINATION), torch.zeros_like(batch.get(("next", "terminated"))))
+    advantage(batch)
+
+
+def ppo_update(
+    args: argparse.Namespace,
+    batch: TensorDictBase,
+    advantage: GAE,
+    buffer: ReplayBuffer,
+    loss_module: ClipPPOLoss,
+    optim: torch.optim.Optimizer,
+    updates_per_epoch: int,
+) -> tuple[int, TensorDictBase]:
+    """``--epochs`` passes of minibatch updates over ``batch``; returns the updates made and the last losses.
+
+    Advantages come from the current critic each epoch, as in TorchRL's PPO tutorial. With
+    ``--target-kl``, the updates stop once the policy has moved that far (approximate KL) from the
+    one that collected ``batch``, as in ManiSkill's baseline.
+    """
+    updates = 0
+    for _ in range(args.epochs):
+        estimate_advantage(args, advantage, batch)
+        buffer.empty()
+        buffer.extend(batch.reshape(-1))
+        for _ in range(updates_per_epoch):
+            losses = loss_module(buffer.sample())
+            if args.target_kl is not None and losses["kl_approx"].item() > args.target_kl:
+                return updates, losses
+            loss = losses["loss_objective"] + losses["loss_critic"]
+            if "loss_entropy" in losses.keys():
+                loss = loss + losses["loss_entropy"]
+            optim.zero_grad(set_to_none=True)
+            loss.backward()
+            nn.utils.clip_grad_norm_(loss_module.parameters(), args.max_grad_norm)
+            optim.step()
+            updates += 1
+    return updates, losses
 
 
 # ------------------------------------------------------------------------- logging
@@ -311,26 +365,13 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
                 group["lr"] = args.lr * (1.0 - frames / total_frames)
         frames += batch.numel()
         record = {"iteration": it, "frames": frames, **episode_stats(batch)}
-        for _ in range(args.epochs):
-            # Advantages from the current critic each epoch, as in TorchRL's PPO tutorial.
-            with torch.no_grad():
-                advantage(batch)
-            buffer.empty()
-            buffer.extend(batch.reshape(-1))
-            for _ in range(updates_per_epoch):
-                sample = buffer.sample()
-                losses = loss_module(sample)
-                loss = losses["loss_objective"] + losses["loss_critic"]
-                if "loss_entropy" in losses.keys():
-                    loss = loss + losses["loss_entropy"]
-                optim.zero_grad(set_to_none=True)
-                loss.backward()
-                nn.utils.clip_grad_norm_(loss_module.parameters(), args.max_grad_norm)
-                optim.step()
+        updates, losses = ppo_update(args, batch, advantage, buffer, loss_module, optim, updates_per_epoch)
         collector.update_policy_weights_()
         record.update(
             loss_objective=losses["loss_objective"].item(),
             loss_critic=losses["loss_critic"].item(),
+            kl_approx=losses["kl_approx"].item(),
+            updates=updates,
             frames_per_s=round(frames / (time.perf_counter() - t0 - eval_s), 1),
             train_s=round(time.perf_counter() - t0 - eval_s, 1),
             wall_s=round(time.perf_counter() - start, 1),
@@ -422,8 +463,22 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--anneal-lr", action="store_true", help="decay the learning rate linearly to 0 over --total-frames")
     p.add_argument("--gamma", type=float, default=0.8)
     p.add_argument("--lmbda", type=float, default=0.9)
+    p.add_argument(
+        "--bootstrap-at-done",
+        choices=("always", "never"),
+        default="always",
+        help="always: bootstrap from the final observation's value at every done, success terminations "
+        "included (ManiSkill's PPO baseline); never: a termination ends the return (TorchRL's GAE default)",
+    )
     p.add_argument("--clip-epsilon", type=float, default=0.2)
     p.add_argument("--entropy-coeff", type=float, default=0.0)
+    p.add_argument(
+        "--target-kl",
+        type=float,
+        default=None,
+        help="stop an iteration's updates once the approximate KL to the collecting policy exceeds this "
+        "(ManiSkill's baseline: 0.1); default: no stop",
+    )
     p.add_argument("--critic-coeff", type=float, default=0.5)
     p.add_argument("--max-grad-norm", type=float, default=0.5)
     p.add_argument("--threads", type=int, default=1, help="torch threads on the CPU")

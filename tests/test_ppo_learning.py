@@ -8,6 +8,9 @@ from __future__ import annotations
 import sys
 
 import torch
+from tensordict import TensorDict
+from torch import nn
+from torchrl.modules import ValueOperator
 
 from helpers import EXAMPLES
 from maniskill_torchrl import ManiSkillEnv
@@ -28,8 +31,7 @@ def test_ppo_objective_falls_on_a_fixed_batch() -> None:
     finally:
         env.close()
     advantage, loss_module, optim = ppo_torchrl.make_objective(args, policy, value)
-    with torch.no_grad():
-        advantage(batch)  # fixed targets: the critic and the ratio are what the updates move
+    ppo_torchrl.estimate_advantage(args, advantage, batch)  # fixed targets: the updates move the critic and ratio
 
     def losses() -> tuple[float, float]:
         out = loss_module(batch)
@@ -45,3 +47,33 @@ def test_ppo_objective_falls_on_a_fixed_batch() -> None:
     assert critic1 < 0.5 * critic0, (critic0, critic1)
     # From ~0 (ratio 1, normalised advantages) towards -(1 + clip) * E|A|-ish: clearly lower.
     assert objective1 < objective0 - 0.05, (objective0, objective1)
+
+
+def test_bootstrap_at_done_follows_maniskills_baseline() -> None:
+    """``always`` (ManiSkill's PPO baseline): a terminated step still bootstraps from the value of its
+    final observation, delta = r + gamma * V(s_final) - V(s); ``never``: delta = r - V(s). Steps that
+    did not end an episode, and the lambda chain cut at the done, are the same either way."""
+    torch.manual_seed(0)
+    value = ValueOperator(nn.Linear(3, 1), in_keys=["observation"])
+    ended = torch.tensor([[False], [True], [False], [False]])  # a success termination at step 1
+    batch = TensorDict(
+        {
+            "observation": torch.randn(4, 3),
+            "next": {"observation": torch.randn(4, 3), "reward": torch.rand(4, 1), "done": ended, "terminated": ended},
+        },
+        [4],
+    )
+    out = {}
+    for mode in ("always", "never"):
+        args = ppo_torchrl.parse_args(["--device", "cpu", "--bootstrap-at-done", mode])
+        advantage, _, _ = ppo_torchrl.make_objective(args, value, value)  # only GAE is used: any actor will do
+        b = batch.clone()
+        ppo_torchrl.estimate_advantage(args, advantage, b)
+        out[mode] = b
+    with torch.no_grad():
+        v_final = value.module(batch["next", "observation"][1])
+    diff = out["always"]["advantage"] - out["never"]["advantage"]
+    torch.testing.assert_close(diff[1], args.gamma * v_final)
+    # Step 0 sees step 1's advantage through the lambda chain: it changes by gamma * lambda times as much.
+    torch.testing.assert_close(diff[0], args.gamma * args.lmbda * args.gamma * v_final)
+    torch.testing.assert_close(diff[2:], torch.zeros_like(diff[2:]))
