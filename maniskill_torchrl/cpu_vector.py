@@ -13,14 +13,13 @@ gymnasium's shared-memory buffers with ManiSkill's own dtypes; only the actions 
 an empty info dict cross the pipes. Nothing is rounded on the way: every sub-env
 equals a lone ManiSkill env given the same seed and actions, bit for bit.
 
-This module imports neither TorchRL nor the rest of the library beyond
-``_maniskill``: the workers import it, and start faster without them.
+The worker side (the gym wrapper each worker runs, its factory, the buffers' layout) is in
+``cpu_worker.py``. Neither module imports TorchRL or the rest of the library beyond
+``_maniskill``: the workers import them, and start faster without them.
 """
 
 from __future__ import annotations
 
-import multiprocessing
-import os
 from collections.abc import Mapping
 from typing import Any
 
@@ -29,138 +28,20 @@ import numpy as np
 import torch
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode
 
-from maniskill_torchrl._maniskill import maniskill_base_env, render_frame_shape, wrapper_attr
+from maniskill_torchrl.cpu_worker import (
+    INFO,
+    OBS,
+    REWARD,
+    TERMINATED,
+    TRUNCATED,
+    MakeWorker,
+    copy_tree,
+    to_numpy,
+    view_tree,
+    zeros_tree,
+)
 
 __all__ = ["CPUVectorEnv"]
-
-_OBS, _INFO, _REWARD, _TERMINATED, _TRUNCATED = "obs", "info", "reward", "terminated", "truncated"
-
-
-def _numpy_dtype(dtype: torch.dtype) -> np.dtype:
-    return torch.empty((), dtype=dtype).numpy().dtype
-
-
-def _info_space(infos: Mapping[str, Any]) -> gym.spaces.Dict:
-    """Spaces for the per-env tensor infos of a one-env ManiSkill info dict (``[1, ...]`` tensors).
-
-    The same entries as :func:`maniskill_torchrl.specs.info_spec_from_infos` keeps:
-    python values such as ``reconfigure`` are per-call metadata and are left out.
-    """
-    spaces: dict[str, gym.Space] = {}
-    for key, value in infos.items():
-        if isinstance(value, Mapping):
-            sub = _info_space(value)
-            if sub.spaces:
-                spaces[key] = sub
-        elif isinstance(value, torch.Tensor) and value.ndim >= 1 and value.shape[0] == 1:
-            dtype = _numpy_dtype(value.dtype)
-            if dtype == np.bool_:
-                spaces[key] = gym.spaces.Box(0, 1, tuple(value.shape[1:]), dtype=np.bool_)
-            else:
-                spaces[key] = gym.spaces.Box(-np.inf, np.inf, tuple(value.shape[1:]), dtype=dtype)
-    return gym.spaces.Dict(spaces)
-
-
-def _select(infos: Mapping[str, Any], space: gym.spaces.Dict) -> dict:
-    """The entries of ``infos`` that ``space`` declares, unbatched to numpy."""
-    return {
-        k: _select(infos[k], sub) if isinstance(sub, gym.spaces.Dict) else infos[k][0].numpy()
-        for k, sub in space.spaces.items()
-    }
-
-
-def _unbatch(x: Any) -> Any:
-    if isinstance(x, torch.Tensor):
-        return x[0].numpy()
-    return {k: _unbatch(v) for k, v in x.items()}
-
-
-def _batch(x: Any) -> Any:
-    if isinstance(x, np.ndarray):
-        return torch.from_numpy(x).unsqueeze(0)
-    if isinstance(x, torch.Tensor):
-        return x.unsqueeze(0)
-    return {k: _batch(v) for k, v in x.items()}
-
-
-class _StepInObservation(gym.Wrapper):
-    """Worker side: one ManiSkill CPU env whose whole step travels as one observation.
-
-    The observation becomes ``{"obs", "info", "reward", "terminated", "truncated"}``,
-    unbatched numpy with ManiSkill's dtypes, so gymnasium's shared-memory buffers carry
-    all of it; ``step`` returns a dummy reward, dummy flags and an empty info dict (no
-    per-step pickling of infos, no merging of info dicts in the parent). Actions arrive
-    unbatched (numpy, or dicts of them) and reach ManiSkill as ``[1, ...]`` torch tensors,
-    as a batched ManiSkill env expects them.
-    """
-
-    def __init__(self, env: gym.Env) -> None:
-        super().__init__(env)
-        base = maniskill_base_env(env)
-        if base is None or base.num_envs != 1 or base.gpu_sim_enabled:
-            raise ValueError("CPUVectorEnv workers hold one ManiSkill env on the CPU sim (num_envs=1).")
-        self._info_space = _info_space(base.get_info())
-        single_obs = wrapper_attr(env, "single_observation_space")
-        self.observation_space = gym.spaces.Dict(
-            {
-                _OBS: single_obs,
-                _INFO: self._info_space,
-                _REWARD: gym.spaces.Box(-np.inf, np.inf, (), dtype=np.float32),
-                _TERMINATED: gym.spaces.Box(0, 1, (), dtype=np.bool_),
-                _TRUNCATED: gym.spaces.Box(0, 1, (), dtype=np.bool_),
-            }
-        )
-        self.action_space = wrapper_attr(env, "single_action_space")
-
-    def render_frame_shape(self) -> tuple[int, ...]:
-        return render_frame_shape(self.env.unwrapped)
-
-    def _pack(self, obs: Any, info: Mapping, reward: Any, terminated: Any, truncated: Any) -> dict:
-        return {
-            _OBS: _unbatch(obs),
-            _INFO: _select(info, self._info_space),
-            _REWARD: reward,
-            _TERMINATED: terminated,
-            _TRUNCATED: truncated,
-        }
-
-    def reset(self, *, seed: int | None = None, options: dict | None = None):
-        obs, info = self.env.reset(seed=seed, options=options)
-        return self._pack(obs, info, np.float32(0), False, False), {}
-
-    def step(self, action: Any):
-        obs, reward, terminated, truncated, info = self.env.step(_batch(action))
-        packed = self._pack(obs, info, reward[0].numpy(), terminated[0].numpy(), truncated[0].numpy())
-        return packed, 0.0, False, False, {}
-
-
-class _MakeWorker:
-    """Picklable env factory for the forkserver workers."""
-
-    def __init__(self, env_id: str, kwargs: dict) -> None:
-        self.env_id, self.kwargs = env_id, kwargs
-
-    def __call__(self) -> gym.Env:
-        import mani_skill.envs  # noqa: F401  (registers the tasks in the worker)
-
-        if multiprocessing.parent_process() is not None:  # a worker; gymnasium also calls this in the parent
-            _batch_scheduling()
-        return _StepInObservation(gym.make(self.env_id, num_envs=1, **self.kwargs))
-
-
-def _batch_scheduling() -> None:
-    """Runs this worker (and the threads it starts) under Linux's ``SCHED_BATCH`` policy.
-
-    Same fair share, but a woken worker does not preempt the running process: the parent
-    sends every worker its action before one of them takes its core (the pipe wake-up
-    otherwise hands the parent's core to the first worker for a time slice).
-    """
-    policy = getattr(os, "SCHED_BATCH", None)
-    if policy is not None and hasattr(os, "sched_setscheduler"):
-        try:
-            os.sched_setscheduler(0, policy, os.sched_param(0))
-        except OSError:
-            pass
 
 
 class CPUVectorEnv:
@@ -208,7 +89,7 @@ class CPUVectorEnv:
         self.device = torch.device("cpu")
         try:
             self._vec = AsyncVectorEnv(
-                [_MakeWorker(env_id, maniskill_kwargs)] * self.num_envs,
+                [MakeWorker(env_id, maniskill_kwargs)] * self.num_envs,
                 shared_memory=True,
                 copy=False,  # we copy once, into torch
                 context=context,
@@ -221,9 +102,9 @@ class CPUVectorEnv:
                 "in a script, build envs only under `if __name__ == '__main__':`."
             ) from err
         space = self._vec.single_observation_space
-        self.single_observation_space = space[_OBS]
+        self.single_observation_space = space[OBS]
         self.single_action_space = self._vec.single_action_space
-        self._info_space = space[_INFO]
+        self._info_space = space[INFO]
         self.render_mode = self._vec.render_mode
         self.spec = gym.spec(env_id)
         self._closed = False
@@ -235,18 +116,18 @@ class CPUVectorEnv:
     # ---------------------------------------------------------------- data
     def _read(self) -> tuple[Any, torch.Tensor, torch.Tensor, torch.Tensor, dict]:
         buf = self._vec.observations  # numpy views of the shared memory
-        obs = _copy_tree(buf[_OBS])
-        info = _view_tree(buf[_INFO])
-        reward = torch.tensor(buf[_REWARD])
-        terminated = torch.tensor(buf[_TERMINATED])
-        truncated = torch.tensor(buf[_TRUNCATED])
+        obs = copy_tree(buf[OBS])
+        info = view_tree(buf[INFO])
+        reward = torch.tensor(buf[REWARD])
+        terminated = torch.tensor(buf[TERMINATED])
+        truncated = torch.tensor(buf[TRUNCATED])
         return obs, reward, terminated, truncated, info
 
     def step(
         self, action: torch.Tensor | Mapping[str, torch.Tensor]
     ) -> tuple[Any, torch.Tensor, torch.Tensor, torch.Tensor, dict]:
         try:
-            self._vec.step_async(_to_numpy(action))
+            self._vec.step_async(to_numpy(action))
             self._vec.step_wait()
         except (EOFError, OSError) as err:
             raise self._worker_died("step") from err
@@ -271,7 +152,7 @@ class CPUVectorEnv:
 
     def get_info(self) -> dict:
         """Zeros shaped as the info entries (``[N, ...]``, ManiSkill's dtypes): the layout, no data."""
-        return _zeros_tree(self._info_space, self.num_envs)
+        return zeros_tree(self._info_space, self.num_envs)
 
     def render_frame_shape(self) -> tuple[int, ...]:
         """``(H, W, 3)`` of one sub-env's ``render()`` frame, asked of worker 0."""
@@ -306,30 +187,3 @@ class CPUVectorEnv:
 
     def __repr__(self) -> str:
         return f"CPUVectorEnv({self.spec.id}, num_envs={self.num_envs})"
-
-
-def _to_numpy(action: Any) -> Any:
-    if isinstance(action, torch.Tensor):
-        return action.detach().cpu().numpy()
-    return {k: _to_numpy(v) for k, v in action.items()}
-
-
-def _copy_tree(x: Any) -> Any:
-    if isinstance(x, np.ndarray):
-        return torch.tensor(x)
-    return {k: _copy_tree(v) for k, v in x.items()}
-
-
-def _view_tree(x: Any) -> Any:
-    if isinstance(x, np.ndarray):
-        return torch.from_numpy(x)
-    return {k: _view_tree(v) for k, v in x.items()}
-
-
-def _zeros_tree(space: gym.spaces.Dict, n: int) -> dict:
-    return {
-        k: _zeros_tree(sub, n)
-        if isinstance(sub, gym.spaces.Dict)
-        else torch.zeros((n, *sub.shape), dtype=torch.from_numpy(np.zeros((), sub.dtype)).dtype)
-        for k, sub in space.spaces.items()
-    }

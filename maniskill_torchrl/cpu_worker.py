@@ -1,0 +1,201 @@
+"""The worker side of :class:`~maniskill_torchrl.cpu_vector.CPUVectorEnv`, and the layout of the
+shared buffers both sides read.
+
+Each worker process holds one ManiSkill CPU-sim env behind :class:`StepInObservation`, which
+writes its whole step (observation, reward, flags, tensor infos) into gymnasium's shared-memory
+observation buffers with ManiSkill's own dtypes; :class:`MakeWorker` is the picklable factory
+that builds it in the worker. The tree helpers at the end convert between those numpy buffers
+and the parent's batched torch tensors.
+
+Like ``cpu_vector.py``, this module imports neither TorchRL nor the rest of the library beyond
+``_maniskill``: the workers import it, and start faster without them.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+from collections.abc import Mapping
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from maniskill_torchrl._maniskill import maniskill_base_env, render_frame_shape, wrapper_attr
+
+__all__ = [
+    "OBS",
+    "INFO",
+    "REWARD",
+    "TERMINATED",
+    "TRUNCATED",
+    "StepInObservation",
+    "MakeWorker",
+    "to_numpy",
+    "copy_tree",
+    "view_tree",
+    "zeros_tree",
+]
+
+# The entries of a worker's observation: its whole step.
+OBS, INFO, REWARD, TERMINATED, TRUNCATED = "obs", "info", "reward", "terminated", "truncated"
+
+
+def _numpy_dtype(dtype: torch.dtype) -> np.dtype:
+    return torch.empty((), dtype=dtype).numpy().dtype
+
+
+def _info_space(infos: Mapping[str, Any]) -> gym.spaces.Dict:
+    """Spaces for the per-env tensor infos of a one-env ManiSkill info dict (``[1, ...]`` tensors).
+
+    The same entries as :func:`maniskill_torchrl.specs.info_spec_from_infos` keeps:
+    python values such as ``reconfigure`` are per-call metadata and are left out.
+    """
+    spaces: dict[str, gym.Space] = {}
+    for key, value in infos.items():
+        if isinstance(value, Mapping):
+            sub = _info_space(value)
+            if sub.spaces:
+                spaces[key] = sub
+        elif isinstance(value, torch.Tensor) and value.ndim >= 1 and value.shape[0] == 1:
+            dtype = _numpy_dtype(value.dtype)
+            if dtype == np.bool_:
+                spaces[key] = gym.spaces.Box(0, 1, tuple(value.shape[1:]), dtype=np.bool_)
+            else:
+                spaces[key] = gym.spaces.Box(-np.inf, np.inf, tuple(value.shape[1:]), dtype=dtype)
+    return gym.spaces.Dict(spaces)
+
+
+def _select(infos: Mapping[str, Any], space: gym.spaces.Dict) -> dict:
+    """The entries of ``infos`` that ``space`` declares, unbatched to numpy."""
+    return {
+        k: _select(infos[k], sub) if isinstance(sub, gym.spaces.Dict) else infos[k][0].numpy()
+        for k, sub in space.spaces.items()
+    }
+
+
+def _unbatch(x: Any) -> Any:
+    if isinstance(x, torch.Tensor):
+        return x[0].numpy()
+    return {k: _unbatch(v) for k, v in x.items()}
+
+
+def _batch(x: Any) -> Any:
+    if isinstance(x, np.ndarray):
+        return torch.from_numpy(x).unsqueeze(0)
+    if isinstance(x, torch.Tensor):
+        return x.unsqueeze(0)
+    return {k: _batch(v) for k, v in x.items()}
+
+
+class StepInObservation(gym.Wrapper):
+    """Worker side: one ManiSkill CPU env whose whole step travels as one observation.
+
+    The observation becomes ``{"obs", "info", "reward", "terminated", "truncated"}``,
+    unbatched numpy with ManiSkill's dtypes, so gymnasium's shared-memory buffers carry
+    all of it; ``step`` returns a dummy reward, dummy flags and an empty info dict (no
+    per-step pickling of infos, no merging of info dicts in the parent). Actions arrive
+    unbatched (numpy, or dicts of them) and reach ManiSkill as ``[1, ...]`` torch tensors,
+    as a batched ManiSkill env expects them.
+    """
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        base = maniskill_base_env(env)
+        if base is None or base.num_envs != 1 or base.gpu_sim_enabled:
+            raise ValueError("CPUVectorEnv workers hold one ManiSkill env on the CPU sim (num_envs=1).")
+        self._info_space = _info_space(base.get_info())
+        single_obs = wrapper_attr(env, "single_observation_space")
+        self.observation_space = gym.spaces.Dict(
+            {
+                OBS: single_obs,
+                INFO: self._info_space,
+                REWARD: gym.spaces.Box(-np.inf, np.inf, (), dtype=np.float32),
+                TERMINATED: gym.spaces.Box(0, 1, (), dtype=np.bool_),
+                TRUNCATED: gym.spaces.Box(0, 1, (), dtype=np.bool_),
+            }
+        )
+        self.action_space = wrapper_attr(env, "single_action_space")
+
+    def render_frame_shape(self) -> tuple[int, ...]:
+        return render_frame_shape(self.env.unwrapped)
+
+    def _pack(self, obs: Any, info: Mapping, reward: Any, terminated: Any, truncated: Any) -> dict:
+        return {
+            OBS: _unbatch(obs),
+            INFO: _select(info, self._info_space),
+            REWARD: reward,
+            TERMINATED: terminated,
+            TRUNCATED: truncated,
+        }
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        obs, info = self.env.reset(seed=seed, options=options)
+        return self._pack(obs, info, np.float32(0), False, False), {}
+
+    def step(self, action: Any):
+        obs, reward, terminated, truncated, info = self.env.step(_batch(action))
+        packed = self._pack(obs, info, reward[0].numpy(), terminated[0].numpy(), truncated[0].numpy())
+        return packed, 0.0, False, False, {}
+
+
+class MakeWorker:
+    """Picklable env factory for the forkserver workers."""
+
+    def __init__(self, env_id: str, kwargs: dict) -> None:
+        self.env_id, self.kwargs = env_id, kwargs
+
+    def __call__(self) -> gym.Env:
+        import mani_skill.envs  # noqa: F401  (registers the tasks in the worker)
+
+        if multiprocessing.parent_process() is not None:  # a worker; gymnasium also calls this in the parent
+            _batch_scheduling()
+        return StepInObservation(gym.make(self.env_id, num_envs=1, **self.kwargs))
+
+
+def _batch_scheduling() -> None:
+    """Runs this worker (and the threads it starts) under Linux's ``SCHED_BATCH`` policy.
+
+    Same fair share, but a woken worker does not preempt the running process: the parent
+    sends every worker its action before one of them takes its core (the pipe wake-up
+    otherwise hands the parent's core to the first worker for a time slice).
+    """
+    policy = getattr(os, "SCHED_BATCH", None)
+    if policy is not None and hasattr(os, "sched_setscheduler"):
+        try:
+            os.sched_setscheduler(0, policy, os.sched_param(0))
+        except OSError:
+            pass
+
+
+# ----------------------------------------------------------- parent side of the buffers
+def to_numpy(action: Any) -> Any:
+    """Batched torch actions (or dicts of them) -> numpy, for the workers' pipes."""
+    if isinstance(action, torch.Tensor):
+        return action.detach().cpu().numpy()
+    return {k: to_numpy(v) for k, v in action.items()}
+
+
+def copy_tree(x: Any) -> Any:
+    """Numpy buffers -> torch copies (observations: the caller keeps them)."""
+    if isinstance(x, np.ndarray):
+        return torch.tensor(x)
+    return {k: copy_tree(v) for k, v in x.items()}
+
+
+def view_tree(x: Any) -> Any:
+    """Numpy buffers -> torch views (infos: the next call overwrites them)."""
+    if isinstance(x, np.ndarray):
+        return torch.from_numpy(x)
+    return {k: view_tree(v) for k, v in x.items()}
+
+
+def zeros_tree(space: gym.spaces.Dict, n: int) -> dict:
+    """``[n, ...]`` torch zeros shaped and typed as ``space``'s entries."""
+    return {
+        k: zeros_tree(sub, n)
+        if isinstance(sub, gym.spaces.Dict)
+        else torch.zeros((n, *sub.shape), dtype=torch.from_numpy(np.zeros((), sub.dtype)).dtype)
+        for k, sub in space.spaces.items()
+    }
