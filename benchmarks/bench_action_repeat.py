@@ -42,7 +42,8 @@ import warnings
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from common import Contender, interleave, machine_line, make_actions, ratio, report, save_json  # noqa: E402
+from common import Contender, interleave, make_actions, ratio, report  # noqa: E402
+from machine import machine_line, save_json  # noqa: E402
 
 warnings.filterwarnings("ignore")
 

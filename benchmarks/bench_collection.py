@@ -32,7 +32,7 @@ Frames are agent steps (the collector's frames; gym: N per ``step``). Each run i
 Python process (this script with ``--child``) that builds the pipeline, warms up untimed
 (first reset and one batch / 50 steps), then collects for ``--seconds`` of wall time,
 counting whole batches. Rounds alternate (round ``r`` runs every pipeline once, in a
-rotating order, :func:`common.alternate_processes`); medians over rounds are reported, with
+rotating order, :func:`alternate.alternate_processes`); medians over rounds are reported, with
 ratios to the gym path at the same N and repeat. The child also records its own CPU time
 and its workers' (``main cpu``: cores the main process keeps busy; ``workers cpu``: cores
 its worker processes keep busy, summed) and the cores other processes of the machine kept
@@ -59,14 +59,8 @@ import warnings
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
-from common import (  # noqa: E402
-    ProcessContender,
-    add_alternation_args,
-    child_result,
-    machine_line,
-    run_alternating,
-    save_json,
-)
+from alternate import ProcessContender, add_alternation_args, child_result, run_alternating  # noqa: E402
+from machine import machine_line, save_json  # noqa: E402
 
 warnings.filterwarnings("ignore")
 
@@ -305,7 +299,7 @@ def run_child(spec: str, n: int, repeat: int, seconds: float) -> None:
     child_result(**out)
     sys.stdout.flush()
     # No teardown (closing SAPIEN in every worker takes seconds and is not measured): the parent
-    # ends what is left of this process's session (common.alternate_processes).
+    # ends what is left of this process's session (alternate.alternate_processes).
     os._exit(0)
 
 
@@ -365,7 +359,7 @@ def main(argv: list[str] | None = None) -> int:
         run_child(args.child, args.n[0], args.repeat[0], args.seconds)
         return 0
 
-    # A TERM (timeout, kill) ends the run in progress with its workers (common._run_child's cleanup).
+    # A TERM (timeout, kill) ends the run in progress with its workers (alternate._run_child's cleanup).
     signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt()))
     specs = list(dict.fromkeys(args.pipelines))
     if "gym" not in specs:

@@ -10,7 +10,7 @@ state observations, random actions, episodes of 50 steps; the env of
 - ``multisync``: ``Collector(make_env, backend="process", num_collectors=K)`` (TorchRL's
   ``MultiSyncCollector``), one local worker process per collector.
 
-Every run is a fresh process and the runs alternate (``common.alternate_processes``, the
+Every run is a fresh process and the runs alternate (``alternate.alternate_processes``, the
 harness of ``bench_collection.py``, whose child helpers this script reuses); medians over
 rounds. Start-up (Ray's head processes, actor start, first batch) is not timed; it is reported
 as ``start-up``. ``workers cpu`` counts every process under the child (for ``ray`` that includes
@@ -32,15 +32,9 @@ import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
+from alternate import ProcessContender, add_alternation_args, child_result, run_alternating  # noqa: E402
 from bench_collection import ENV_ID, EPISODE, SEED, _CPUMeter, _quiet, _time_collector, _worker_env  # noqa: E402
-from common import (  # noqa: E402
-    ProcessContender,
-    add_alternation_args,
-    child_result,
-    machine_line,
-    run_alternating,
-    save_json,
-)
+from machine import machine_line, save_json  # noqa: E402
 
 PIPELINES = ["multisync", "ray"]
 

@@ -37,7 +37,8 @@ import warnings
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from common import Contender, Result, interleave, machine_line, make_actions, paired_ratio, save_json  # noqa: E402
+from common import Contender, Result, interleave, make_actions, paired_ratio  # noqa: E402
+from machine import machine_line, save_json  # noqa: E402
 
 warnings.filterwarnings("ignore")
 

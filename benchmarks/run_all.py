@@ -24,7 +24,7 @@ import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
-from common import machine_line  # noqa: E402
+from machine import machine_line  # noqa: E402
 
 
 def discover() -> list[str]:
