@@ -67,7 +67,10 @@ class CPUVectorEnv:
     ``reset(seed=s, options={"env_idx": idx})`` for the sub-envs in ``idx`` only (the
     others keep running). Without a seed, a sub-env's reset is ManiSkill's unseeded
     reset, which draws from its worker's global torch RNG. All sub-envs are stepped
-    together: gymnasium's ``AsyncVectorEnv`` has no partial step.
+    together: gymnasium's ``AsyncVectorEnv`` has no partial step. After
+    :meth:`set_repeat` ``(k)`` each ``step`` repeats its action up to ``k`` times inside
+    every worker, which stops at its own episode's end (ManiSkill's ``ActionRepeatWrapper``
+    per sub-env): one round trip per ``step``, no physics after an end.
 
     A failure in a worker is raised here, by the call that met it: gymnasium re-raises
     the worker's Python exception; a worker that died makes the call raise a
@@ -108,6 +111,7 @@ class CPUVectorEnv:
         self.render_mode = self._vec.render_mode
         self.spec = gym.spec(env_id)
         self._closed = False
+        self._repeat = 1
 
     @property
     def unwrapped(self) -> CPUVectorEnv:
@@ -150,6 +154,37 @@ class CPUVectorEnv:
         obs, _, _, _, info = self._read()
         return obs, info
 
+    @property
+    def repeat(self) -> int:
+        """How many times each ``step`` applies its action in the workers (1: plain steps)."""
+        return self._repeat
+
+    def set_repeat(self, repeat: int) -> None:
+        """From the next ``step`` on, every worker applies the action up to ``repeat`` times.
+
+        Each worker steps its env through the gym shim's
+        :class:`~maniskill_torchrl.wrappers.ActionRepeatWrapper` (bit for bit ManiSkill's):
+        reward summed, flags OR'ed, observation and infos of the sub-env's last real step, no
+        step after its episode's end. ``repeat=1`` restores plain steps. One round trip,
+        only when the value changes. :class:`~maniskill_torchrl.ManiSkillWrapper` sets it
+        for the steps that :class:`~maniskill_torchrl.transforms.ActionRepeat` hands to the
+        workers, and restores the repeat this env had when it was wrapped for the others.
+
+        Raises:
+            TypeError: ``repeat`` is not an int.
+            ValueError: ``repeat < 1``.
+        """
+        from maniskill_torchrl.masked_merge import check_repeat  # tensordict: kept out of module import
+
+        repeat = check_repeat(repeat)
+        if repeat == self._repeat:
+            return
+        try:
+            self._vec.call("set_repeat", repeat)
+        except (EOFError, OSError) as err:
+            raise self._worker_died("set_repeat") from err
+        self._repeat = repeat
+
     def get_info(self) -> dict:
         """Zeros shaped as the info entries (``[N, ...]``, ManiSkill's dtypes): the layout, no data."""
         return zeros_tree(self._info_space, self.num_envs)
@@ -186,4 +221,5 @@ class CPUVectorEnv:
             self._vec.close()
 
     def __repr__(self) -> str:
-        return f"CPUVectorEnv({self.spec.id}, num_envs={self.num_envs})"
+        repeat = f", repeat={self._repeat}" if self._repeat != 1 else ""
+        return f"CPUVectorEnv({self.spec.id}, num_envs={self.num_envs}{repeat})"

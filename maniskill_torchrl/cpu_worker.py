@@ -8,7 +8,8 @@ that builds it in the worker. The tree helpers at the end convert between those 
 and the parent's batched torch tensors.
 
 Like ``cpu_vector.py``, this module imports neither TorchRL nor the rest of the library beyond
-``_maniskill``: the workers import it, and start faster without them.
+``_maniskill`` when it loads: the workers import it, and start faster without them. A worker
+told to repeat actions imports the gym shim's ``ActionRepeatWrapper`` then.
 """
 
 from __future__ import annotations
@@ -98,6 +99,10 @@ class StepInObservation(gym.Wrapper):
     per-step pickling of infos, no merging of info dicts in the parent). Actions arrive
     unbatched (numpy, or dicts of them) and reach ManiSkill as ``[1, ...]`` torch tensors,
     as a batched ManiSkill env expects them.
+
+    :meth:`set_repeat` ``(k)`` makes each ``step`` go through the gym shim's
+    :class:`~maniskill_torchrl.wrappers.ActionRepeatWrapper` (ManiSkill's, bit for bit)
+    around the env: up to ``k`` steps in this worker, none after its episode's end.
     """
 
     def __init__(self, env: gym.Env) -> None:
@@ -117,6 +122,19 @@ class StepInObservation(gym.Wrapper):
             }
         )
         self.action_space = wrapper_attr(env, "single_action_space")
+        self._stepper: gym.Env = env  # what step() steps: the env, or an ActionRepeatWrapper around it
+        self.repeat = 1
+
+    def set_repeat(self, repeat: int) -> None:
+        """From the next ``step`` on, each action is applied up to ``repeat`` times (1: plain steps)."""
+        if repeat == 1:
+            self._stepper = self.env
+        else:
+            # The gym shim (tensordict, no TorchRL) is imported only by workers that repeat.
+            from maniskill_torchrl.wrappers.action_repeat import ActionRepeatWrapper
+
+            self._stepper = ActionRepeatWrapper(self.env, repeat)
+        self.repeat = repeat
 
     def render_frame_shape(self) -> tuple[int, ...]:
         return render_frame_shape(self.env.unwrapped)
@@ -135,7 +153,7 @@ class StepInObservation(gym.Wrapper):
         return self._pack(obs, info, np.float32(0), False, False), {}
 
     def step(self, action: Any):
-        obs, reward, terminated, truncated, info = self.env.step(_batch(action))
+        obs, reward, terminated, truncated, info = self._stepper.step(_batch(action))
         packed = self._pack(obs, info, reward[0].numpy(), terminated[0].numpy(), truncated[0].numpy())
         return packed, 0.0, False, False, {}
 

@@ -71,7 +71,12 @@ class ManiSkillWrapper(EnvWrapper):
     Partial steps: ManiSkill steps all of its envs together (the GPU sim, and
     the CPU workers of a ``CPUVectorEnv``, which gymnasium steps all at once),
     so a ``"_step"`` mask is not honoured by this env (use a
-    :class:`~torchrl.envs.ParallelEnv` of single CPU envs for that).
+    :class:`~torchrl.envs.ParallelEnv` of single CPU envs for that). Placed
+    directly on a ``CPUVectorEnv`` one, :class:`~maniskill_torchrl.transforms.ActionRepeat`
+    has the workers repeat each action themselves
+    (:meth:`CPUVectorEnv.set_repeat <maniskill_torchrl.cpu_vector.CPUVectorEnv.set_repeat>`):
+    one round trip per step, and a sub-env whose episode ends mid-repeat is not stepped
+    further.
 
     Args:
         env: a ManiSkill env, ``gym.make("PickCube-v1", ...)``, possibly
@@ -128,6 +133,11 @@ class ManiSkillWrapper(EnvWrapper):
     ) -> None:
         base = checked_base_env(env, device, from_pixels=from_pixels, pixels_only=pixels_only)
         self._seeds_partial_resets = isinstance(base, CPUVectorEnv)
+        # A CPUVectorEnv wrapped as is can repeat actions in its workers (ActionRepeat's fast path):
+        # each step runs with the repeat asked for it, else with the one the env had when wrapped.
+        self._workers = base if env is base and isinstance(base, CPUVectorEnv) else None
+        self._plain_repeat = base.repeat if self._workers is not None else 1
+        self._next_repeat = 0  # 0: no request for the next step
         self._from_pixels = bool(from_pixels)
         self._pixels_only = bool(pixels_only)
         self._requested_info_keys = info_keys
@@ -222,7 +232,26 @@ class ManiSkillWrapper(EnvWrapper):
             source["pixels"] = self._render_batched(self._env.render())
         return source
 
+    def _request_worker_repeat(self, repeat: int) -> bool:
+        """Has the next step apply its action up to ``repeat`` times inside the CPU workers.
+
+        :class:`~maniskill_torchrl.transforms.ActionRepeat`'s fast path. Only a
+        :class:`CPUVectorEnv` wrapped as is (with no repeat of its own) can: returns False
+        otherwise. The request holds for the next step only; any step asked for without
+        one runs with the env's own repeat again, so a removed transform leaves plain steps.
+        """
+        if self._workers is None or self._plain_repeat != 1:
+            return False
+        self._next_repeat = repeat
+        return True
+
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        workers = self._workers
+        if workers is not None:
+            # Taken first, so that a failing step leaves no request behind.
+            repeat, self._next_repeat = self._next_repeat or self._plain_repeat, 0
+            if workers.repeat != repeat:  # a round trip, only when the repeat changes
+                workers.set_repeat(repeat)
         action = tensordict.get("action", None)
         if action is None:
             raise self._action_error(tensordict, "action", None)
@@ -308,6 +337,7 @@ class ManiSkillWrapper(EnvWrapper):
         if env is not None and not isinstance(env, ClosedEnv):
             # A stand-in that says the env is closed: a closed ManiSkill sim fails with AttributeErrors.
             self._env = ClosedEnv(f"{type(self).__name__}({self._env_name(env)})")
+            self._workers = None
             env.close()
         super().close(raise_if_closed=raise_if_closed)
 

@@ -31,15 +31,24 @@ class ActionRepeat(Transform):
     level, for any agent) is True.
 
     Envs that have ended are not stepped again where the parent can skip them:
-    on a :class:`~torchrl.envs.SerialEnv` / :class:`~torchrl.envs.ParallelEnv`
-    the extra inner steps carry TorchRL's ``"_step"`` partial-step mask, so a
-    ``ParallelEnv`` of CPU ManiSkill envs spends no physics on finished envs.
-    One batch-locked simulator (:class:`~maniskill_torchrl.ManiSkillWrapper`,
-    ManiSkill's GPU sim) steps all its envs together; the results of the
+
+    - on the batched CPU env (``ManiSkillEnv(env_id, num_envs=N)`` on the CPU
+      sim, a :class:`~maniskill_torchrl.ManiSkillWrapper` of a
+      :class:`~maniskill_torchrl.cpu_vector.CPUVectorEnv`), when this transform
+      sits directly on it (no transform before this one), the repeat runs inside
+      the worker processes (ManiSkill's ``ActionRepeatWrapper`` per sub-env):
+      one round trip per outer step, each worker stops at its own episode's end;
+    - on a :class:`~torchrl.envs.SerialEnv` / :class:`~torchrl.envs.ParallelEnv`
+      the extra inner steps carry TorchRL's ``"_step"`` partial-step mask, so a
+      ``ParallelEnv`` of CPU ManiSkill envs spends no physics on finished envs.
+      Placed inside each worker instead (``ParallelEnv(n, lambda:
+      TransformedEnv(ManiSkillEnv(...), Compose(CPUUnbatch(), ActionRepeat(k))))``)
+      every worker stops on its own.
+
+    One batch-locked simulator (ManiSkill's GPU sim, or the batched CPU env with
+    transforms before this one) steps all its envs together; the results of the
     finished ones are discarded, as ManiSkill's ``ActionRepeatWrapper`` does.
-    Placed inside each worker instead (``ParallelEnv(n, lambda:
-    TransformedEnv(ManiSkillEnv(...), Compose(CPUUnbatch(), ActionRepeat(k))))``)
-    every worker stops on its own.
+    The results are the same bits on every path.
 
     Specs are unchanged. Transforms placed before this one act on every inner
     step (a :class:`~torchrl.envs.StepCounter` there counts inner steps: state
@@ -81,6 +90,7 @@ class ActionRepeat(Transform):
         self.repeat = repeat
         self._stash: TensorDictBase | None = None
         self._cache: _ParentInfo | None = None
+        self._delegated = False  # this step's repeat was handed to the parent's CPU workers
 
     # ------------------------------------------------------------- internals
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -89,9 +99,31 @@ class ActionRepeat(Transform):
         # would apply those a second time. Compose runs inverses last to first, so
         # here only the later transforms' inverses were applied: keep this view (a
         # shallow copy, as the earlier inverses set entries on the same object).
+        self._delegated = False
         if self.repeat > 1:
+            if self._delegate(tensordict):
+                return tensordict
             self._stash = tensordict.exclude("next")
         return tensordict
+
+    def _delegate(self, tensordict: TensorDictBase) -> bool:
+        """Asks the parent's CPU workers to repeat this step themselves, where they can.
+
+        The request holds for the next parent step only (the env drops it after that
+        step), so a transform removed or moved leaves plain steps behind and no step is
+        repeated twice. Not with an outer partial step (a ``"_step"`` mask that is not all
+        True): the inner loop keeps the envs it skips as they were.
+        """
+        if self.parent is None:
+            return False
+        workers = self._parent_info().workers
+        if workers is None:
+            return False
+        outer_mask = tensordict.get("_step", None)
+        if outer_mask is not None and not bool(outer_mask.all()):
+            return False
+        self._delegated = workers._request_worker_repeat(self.repeat)
+        return self._delegated
 
     def _parent_info(self) -> _ParentInfo:
         """What the inner loop needs to know about the parent, cached per parent."""
@@ -110,6 +142,9 @@ class ActionRepeat(Transform):
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         if self.repeat == 1:
+            return next_tensordict
+        if self._delegated:  # the workers repeated it: one outer step already
+            self._delegated = False
             return next_tensordict
         td, self._stash = self._stash, None
         if td is None:  # _step called without the TransformedEnv's inverse pass
@@ -151,7 +186,17 @@ class ActionRepeat(Transform):
 class _ParentInfo:
     """The parent's keys and how to step it, computed once per parent."""
 
-    __slots__ = ("parent", "reward_keys", "done_keys", "stop_keys", "state_keys", "partial", "_base", "_complete")
+    __slots__ = (
+        "parent",
+        "reward_keys",
+        "done_keys",
+        "stop_keys",
+        "state_keys",
+        "partial",
+        "workers",
+        "_base",
+        "_complete",
+    )
 
     def __init__(self, parent: TransformedEnv) -> None:
         self.parent = parent
@@ -170,6 +215,11 @@ class _ParentInfo:
         # Why: with no transform before this one, parent._step is base_env._step wrapped in an
         # identity inverse (a clone) and an identity forward pass: call the base env directly.
         self._base = parent.base_env if empty else None
+        # Directly on a ManiSkillWrapper whose CPU workers can repeat actions themselves
+        # (ManiSkillWrapper._request_worker_repeat): no transform between would see the inner steps.
+        base_env = self._base
+        can = callable(getattr(type(base_env), "_request_worker_repeat", None)) and base_env._workers is not None
+        self.workers = base_env if can else None
         self._complete: bool | None = None
 
     def step(self, td: TensorDictBase) -> TensorDictBase:
