@@ -175,8 +175,8 @@ def test_reset_mask_resets_only_masked(pick):
 def test_action_repeat_equals_maniskill_wrapper(cartpole):
     """ActionRepeat over the batched CPU env: each sub-env is ManiSkill's ActionRepeatWrapper.
 
-    gymnasium's AsyncVectorEnv steps every worker: a sub-env that ends mid-repeat is stepped
-    with the others and its results discarded; it is compared up to its own end."""
+    The repeat runs inside each worker (tests/test_worker_repeat.py): a sub-env that ends
+    mid-repeat stops there; each is compared up to its own end."""
     repeat = 4
     env = TransformedEnv(cartpole, ActionRepeat(repeat))
     oracles = [ActionRepeatWrapper(make_gym_env("MS-CartpoleBalance-v1", **CART), repeat) for _ in range(N)]
