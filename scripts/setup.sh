@@ -5,10 +5,11 @@
 #
 # 1. Creates .venv at the repo root (python3 -m venv) if missing.
 # 2. Installs torch==2.13.0 (pinned; the CPU wheel comes from the pip
-#    config's find-links), then `pip install -e ".[test,demo,distributed,maniskill]"`
-#    (the `maniskill` extra: the ManiSkill 3.0.x release).
-#    The installed torch is passed to pip as a constraint, so pip can never
-#    swap it for an unpinned (multi-GB CUDA) torch.
+#    config's find-links) and `pip install -e ".[test,demo,distributed,maniskill]"`
+#    (the `maniskill` extra: the ManiSkill 3.0.x release) in one pip call, then
+#    byte-compiles site-packages on all cores (pip --no-compile + compileall -j 0).
+#    The torch pin (or the torch already installed) is passed to pip as a constraint,
+#    so pip can never swap it for an unpinned (multi-GB CUDA) torch.
 #    MANISKILL=nightly (make test MANISKILL=nightly) builds .venv-nightly instead,
 #    with `mani-skill-nightly` in place of the extra (the same `mani_skill` package).
 # 3. Checks that SAPIEN finds a Vulkan device (ManiSkill 3 needs one even for
@@ -69,23 +70,30 @@ if [[ "$want_hash" == "$have_hash" ]]; then
     pip_done=0
 else
     rm -f "$STAMP" "$VULKAN_STAMP"
+    # The torch the resolver must keep: the one installed (a user's own build), else TORCH_PIN,
+    # installed in the same pip call as the package (one resolve).
+    constraints="$(mktemp)"
+    trap 'rm -f "$constraints"' EXIT
+    torch_req=()
     if "$PY" -c "import torch" >/dev/null 2>&1; then
         log "torch $(torch_version) already in $VENV, not reinstalling"
+        echo "torch==$(torch_version)" >"$constraints"
     elif [[ "${MANISKILL_TORCHRL_SKIP_TORCH:-0}" == 1 ]]; then
         die "MANISKILL_TORCHRL_SKIP_TORCH=1 but torch is not importable in $VENV;" \
             "install your torch first: $PY -m pip install torch ... (or unset the variable)"
     else
-        log "installing $TORCH_PIN"
-        pip_q install "$TORCH_PIN"
+        torch_req=("$TORCH_PIN")
+        echo "$TORCH_PIN" >"$constraints"
     fi
 
-    # Pin whatever torch is now installed so the resolver cannot replace it.
-    constraints="$(mktemp)"
-    trap 'rm -f "$constraints"' EXIT
-    echo "torch==$(torch_version)" >"$constraints"
-
-    log "installing maniskill_torchrl (editable, extras: $EXTRAS) ${MANISKILL_REQ[*]:-}"
-    pip_q install -c "$constraints" -e ".[$EXTRAS]" ${MANISKILL_REQ[@]+"${MANISKILL_REQ[@]}"}
+    log "installing ${torch_req[*]:+${torch_req[*]} and }maniskill_torchrl (editable, extras: $EXTRAS) ${MANISKILL_REQ[*]:-}"
+    # --no-compile, then compileall -j 0 below: pip byte-compiles every installed file on one
+    # core (torch alone: ~20 s); compileall spreads the same work over all cores.
+    pip_q install --no-compile -c "$constraints" ${torch_req[@]+"${torch_req[@]}"} -e ".[$EXTRAS]" \
+        ${MANISKILL_REQ[@]+"${MANISKILL_REQ[@]}"}
+    log "compiling bytecode"
+    # -qq: files that are not Python 3 (templates some packages ship) are skipped, as pip skips them.
+    "$PY" -m compileall -qq -j 0 "$("$PY" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')" || true
     # Exactly one ManiSkill distribution: the release and the nightly install the same files.
     "$PY" - <<'EOF' || die "expected exactly one of mani-skill / mani-skill-nightly in $VENV (see above); remove $VENV and re-run"
 import importlib.metadata as m, sys

@@ -294,18 +294,16 @@ def test_dead_worker_raises_instead_of_hanging():
     env.close()  # closing again is harmless
 
 
-def test_bad_input():
+def test_bad_input(pick):
     with pytest.raises(ValueError, match="forkserver"):
         CPUVectorEnv("PickCube-v1", 2, context="fork")
-    env = ManiSkillEnv("PickCube-v1", num_envs=N, obs_mode="state")
-    try:
-        td = env.reset(seed=0)
-        with pytest.raises(ValueError, match=r"shape \(2, 7\)"):
-            env.step(td.set("action", torch.zeros(N, 7)))
-        with pytest.raises(ValueError, match="batch_size \\[1\\]"):
-            TransformedEnv(env, CPUUnbatch())
-    finally:
-        env.close()
+    td = pick.reset(seed=0)
+    with pytest.raises(ValueError, match=r"shape \(2, 7\)"):
+        pick.step(td.set("action", torch.zeros(N, 7)))
+    with pytest.raises(ValueError, match="batch_size \\[1\\]"):
+        TransformedEnv(pick, CPUUnbatch())
+    # the env still steps after the refused action
+    assert pick.step(td.set("action", torch.zeros(N, 8)))["next", "reward"].shape == (N, 1)
 
 
 def test_script_without_main_guard_gets_a_clear_error(tmp_path) -> None:
