@@ -24,7 +24,9 @@ with ``SamplerWithoutReplacement`` -> ``ClipPPOLoss``, with a
 
 Per iteration it prints frames, finished episodes, mean return, success rate
 and losses; at the end it saves the policy and value state dicts to
-``<out>/ppo_checkpoint.pt`` and the log to ``<out>/metrics.jsonl``.
+``<out>/ppo_checkpoint.pt`` and the log to ``<out>/metrics.jsonl``. The policy of
+the evaluation with the highest success_once so far is kept in
+``<out>/ppo_checkpoint_best.pt`` (with that evaluation's figures).
 
 Usage::
 
@@ -61,6 +63,7 @@ from torchrl.objectives.value import GAE
 from maniskill_torchrl.pipeline import make_env as make_pipeline
 
 CHECKPOINT_FORMAT = "maniskill_torchrl.ppo.v1"
+BEST = "ppo_checkpoint_best.pt"  # the policy of the evaluation with the highest success_once
 # GAE's "terminated" entry under --bootstrap-at-done always: False everywhere, so no done stops the bootstrap.
 NO_TERMINATION = "no_termination"
 
@@ -334,7 +337,7 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
         eval_env = make_eval_env(args.env_id, args.eval_envs, device, args.repeat, **_env_kwargs(args))
         eval_steps = -(-_time_limit(args) // args.repeat)  # ceil: a last partial repeat still counts
 
-        def log_eval(frames: int, train_s: float, which: str, acting: Any) -> None:
+        def log_eval(frames: int, train_s: float, which: str, acting: Any) -> dict[str, float]:
             t = time.perf_counter()
             res = evaluate_policy(eval_env, acting, args.eval_episodes, args.eval_seed, eval_steps)
             rec = {
@@ -352,11 +355,13 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
                 + ", ".join(f"{k} {v:.3f}" for k, v in res.items() if k != "episodes"),
                 flush=True,
             )
+            return res
 
         log_eval(0, 0.0, "random", None)
         log_eval(0, 0.0, "policy", policy)
     frames = 0
     record: dict[str, Any] = {}
+    best: dict[str, Any] | None = None  # the best evaluation so far, saved as BEST
     t0 = time.perf_counter()
     eval_s = 0.0  # wall time spent evaluating, not counted as training time
     for it, batch in enumerate(collector, 1):
@@ -384,7 +389,10 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
             frames // args.eval_every > (frames - batch.numel()) // args.eval_every or it == iterations or out_of_time
         ):
             t = time.perf_counter()
-            log_eval(frames, record["train_s"], "policy", policy)
+            res = log_eval(frames, record["train_s"], "policy", policy)
+            if "success_once" in res and (best is None or res["success_once"] > best["success_once"]):
+                best = {"frames": frames, **res}
+                save_checkpoint(out / BEST, args, env, policy, value, frames, evaluation=best)
             eval_s += time.perf_counter() - t
         if out_of_time:
             print(f"--max-minutes {args.max_minutes} reached after {frames} frames: stopping", flush=True)
@@ -396,6 +404,24 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
         eval_env.close()
 
     ckpt = out / "ppo_checkpoint.pt"
+    save_checkpoint(ckpt, args, env, policy, value, frames)
+    print(f"saved checkpoint: {ckpt}")
+    if best is not None:
+        print(f"best evaluation (success_once {best['success_once']:.2f} at {best['frames']} frames): {out / BEST}")
+    print(f"metrics log: {log_path}")
+    return record
+
+
+def save_checkpoint(
+    path: Path,
+    args: argparse.Namespace,
+    env: EnvBase,
+    policy: ProbabilisticActor,
+    value: ValueOperator,
+    frames: int,
+    evaluation: dict[str, Any] | None = None,
+) -> None:
+    """The policy and critic with what ``examples/ppo_checkpoint.py`` checks before loading them."""
     torch.save(
         {
             "format": CHECKPOINT_FORMAT,
@@ -410,12 +436,10 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
             "value": value.state_dict(),
             "args": vars(args),
             "frames": frames,
+            "evaluation": evaluation,
         },
-        ckpt,
+        path,
     )
-    print(f"saved checkpoint: {ckpt}")
-    print(f"metrics log: {log_path}")
-    return record
 
 
 def _format(rec: dict[str, Any]) -> str:
