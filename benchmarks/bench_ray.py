@@ -11,10 +11,10 @@ state observations, random actions, episodes of 50 steps; the env of
   ``MultiSyncCollector``), one local worker process per collector.
 
 Every run is a fresh process and the runs alternate (``alternate.alternate_processes``, the
-harness of ``bench_collection.py``, whose child helpers this script reuses); medians over
-rounds. Start-up (Ray's head processes, actor start, first batch) is not timed; it is reported
-as ``start-up``. ``workers cpu`` counts every process under the child (for ``ray`` that includes
-Ray's own raylet / GCS / agents).
+harness of ``bench_collection.py``, whose child helpers in ``collection_pipelines.py`` this
+script reuses); medians over rounds. Start-up (Ray's head processes, actor start, first batch)
+is not timed; it is reported as ``start-up``. ``workers cpu`` counts every process under the
+child (for ``ray`` that includes Ray's own raylet / GCS / agents).
 
 Run: ``python benchmarks/bench_ray.py [--k 1 2] [--rounds 2] [--seconds 5] [--out results.json]``
 (about 4 minutes on 2 cores with the defaults).
@@ -33,7 +33,7 @@ import time
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 from alternate import ProcessContender, add_alternation_args, child_result, run_alternating  # noqa: E402
-from bench_collection import ENV_ID, EPISODE, SEED, _CPUMeter, _quiet, _time_collector, _worker_env  # noqa: E402
+from collection_pipelines import ENV_ID, EPISODE, SEED, _CPUMeter, _quiet, _time_collector, _worker_env  # noqa: E402
 from machine import machine_line, save_json  # noqa: E402
 
 PIPELINES = ["multisync", "ray"]

@@ -2,29 +2,27 @@
 
 ManiSkill returns batched torch tensors (``[num_envs, ...]``) on the simulation
 device; :class:`ManiSkillWrapper` puts them into TensorDicts as they are: no
-numpy round trips, no host copies, one TensorDict built per step. Its specs come
-from :func:`maniskill_torchrl.specs.env_specs`; :class:`~maniskill_torchrl.ManiSkillEnv`
-(``maniskill_env.py``) builds the ManiSkill env too.
+numpy round trips, no host copies, one TensorDict built per step. Its specs and
+the entries of each step come from its mixin :class:`~maniskill_torchrl.maniskill_layout.ManiSkillLayout`
+(``maniskill_layout.py``); :class:`~maniskill_torchrl.ManiSkillEnv` (``maniskill_env.py``)
+builds the ManiSkill env too.
 """
 
 from __future__ import annotations
 
 import importlib.util
-from collections.abc import Mapping
 from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
-import gymnasium as gym
 import torch
 from tensordict import TensorDictBase
 from torchrl.data.utils import DEVICE_TYPING
 
-from maniskill_torchrl._maniskill import render_frame_shape, wrapper_attr
 from maniskill_torchrl._private import EnvWrapper, classproperty, new_tensordict
 from maniskill_torchrl.cpu_vector import CPUVectorEnv
-from maniskill_torchrl.errors import ClosedEnv, action_error, check_info_keys, checked_base_env
+from maniskill_torchrl.errors import ClosedEnv, checked_base_env
+from maniskill_torchrl.maniskill_layout import ManiSkillLayout
 from maniskill_torchrl.seeding import ResetSeeds
-from maniskill_torchrl.specs import env_specs
 
 if TYPE_CHECKING:
     from mani_skill.envs.sapien_env import BaseEnv
@@ -34,7 +32,7 @@ __all__ = ["ManiSkillWrapper"]
 _has_maniskill = importlib.util.find_spec("mani_skill") is not None
 
 
-class ManiSkillWrapper(EnvWrapper):
+class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
     """A TorchRL env around a ManiSkill 3 env made with ``gym.make``.
 
     The batch is ManiSkill's ``num_envs`` and the device is the simulation's
@@ -138,9 +136,7 @@ class ManiSkillWrapper(EnvWrapper):
         self._workers = base if env is base and isinstance(base, CPUVectorEnv) else None
         self._plain_repeat = base.repeat if self._workers is not None else 1
         self._next_repeat = 0  # 0: no request for the next step
-        self._from_pixels = bool(from_pixels)
-        self._pixels_only = bool(pixels_only)
-        self._requested_info_keys = info_keys
+        self._init_layout(from_pixels=from_pixels, pixels_only=pixels_only, info_keys=info_keys)
         self._seeds = ResetSeeds()
         super().__init__(
             env=env,
@@ -172,66 +168,7 @@ class ManiSkillWrapper(EnvWrapper):
     def gpu_sim_enabled(self) -> bool:
         return bool(self._env.unwrapped.gpu_sim_enabled)
 
-    def _make_specs(self, env: Any) -> None:
-        base = env.unwrapped
-        obs_space = wrapper_attr(env, "single_observation_space")
-        act_space = wrapper_attr(env, "single_action_space")
-        frame_shape = None
-        if self._from_pixels:
-            frame_shape = base.render_frame_shape() if isinstance(base, CPUVectorEnv) else render_frame_shape(base)
-        specs = env_specs(
-            obs_space,
-            act_space,
-            self._infos(base),
-            self.batch_size,
-            self.device,
-            frame_shape=frame_shape,
-            pixels_only=self._pixels_only,
-        )
-        self._obs_is_dict = isinstance(obs_space, gym.spaces.Dict)
-        self._info_map: list[tuple[str, str]] = specs.info_map
-        action_spec = specs.action["action"]
-        self._action_names = list(act_space.spaces.keys()) if isinstance(act_space, gym.spaces.Dict) else None
-        self._action_shapes = (
-            {k: action_spec[k].shape for k in self._action_names}
-            if self._action_names is not None
-            else action_spec.shape
-        )
-        self.observation_spec = specs.observation
-        self.full_action_spec = specs.action
-        self.reward_spec = specs.reward
-        self.done_spec = specs.done
-
-    def _infos(self, base: Any) -> dict[str, Any]:
-        """The info entries to declare: ``info_keys`` (checked) or all of them."""
-        # From get_info(): a probe step or reset would change what later seeded resets give.
-        infos = base.get_info()
-        if self._requested_info_keys is None:
-            return infos
-        check_info_keys(self._requested_info_keys, infos, base)
-        return {k: infos[k] for k in self._requested_info_keys}
-
-    # ------------------------------------------------------------------ data
-    def _render_batched(self, frame: Any) -> torch.Tensor:
-        frame = torch.as_tensor(frame, device=self.device)
-        if frame.ndim == 3:
-            frame = frame.unsqueeze(0)
-        return frame
-
-    def _to_tensordict(self, obs: Any, info: Mapping[str, Any]) -> dict:
-        if self._pixels_only:
-            source = {}
-        elif self._obs_is_dict:
-            source = dict(obs)
-        else:
-            source = {"observation": obs}
-        # Info tensors may alias ManiSkill's buffers (elapsed_steps is updated in place): clone them.
-        for key, td_key in self._info_map:
-            source[td_key] = info[key].clone()
-        if self._from_pixels:
-            source["pixels"] = self._render_batched(self._env.render())
-        return source
-
+    # ------------------------------------------------------------------ step, reset
     def _request_worker_repeat(self, repeat: int) -> bool:
         """Has the next step apply its action up to ``repeat`` times inside the CPU workers.
 
@@ -280,11 +217,6 @@ class ManiSkillWrapper(EnvWrapper):
             source["truncated"] = truncated.view(shape)
             source["done"] = done.view(shape)
         return new_tensordict(source, batch_size=self.batch_size, device=self.device)
-
-    def _action_error(self, tensordict: TensorDictBase, key: str | tuple[str, str], action: Any) -> Exception:
-        expected = self._action_shapes[key[1]] if isinstance(key, tuple) else self._action_shapes
-        keys = sorted(tensordict.keys(include_nested=True, leaves_only=True), key=str)
-        return action_error(type(self).__name__, key, action, expected, keys, self.action_keys)
 
     def _step_proc_data(self, next_tensordict_out: TensorDictBase) -> TensorDictBase:
         # _step already writes reward and the three done entries with their spec shapes and dtypes,

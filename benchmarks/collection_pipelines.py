@@ -1,0 +1,252 @@
+"""The pipelines ``bench_collection.py`` times, each run in a child process of its own.
+
+``run_child`` builds one pipeline (``gym``, ``batched``, ``parallel[:<options>]``,
+``multisync``; ``bench_collection.py``'s docstring describes each), warms it up untimed,
+collects for the given seconds and reports frames, wall time and CPU time to the parent
+(:func:`alternate.child_result`). ``bench_ray.py`` reuses the worker env, the CPU meter and
+the collector timing.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+import warnings
+
+from alternate import child_result
+
+ENV_ID = "PickCube-v1"
+EPISODE = 50
+SEED = 0
+
+
+def _maniskill_kwargs() -> dict:
+    return {"obs_mode": "state", "max_episode_steps": EPISODE}
+
+
+def _quiet() -> None:
+    import logging
+
+    logging.getLogger("mani_skill").setLevel(logging.ERROR)
+    warnings.filterwarnings("ignore")
+
+
+def _gym_thunk(repeat: int):
+    import gymnasium as gym
+    import mani_skill.envs  # noqa: F401
+    from mani_skill.utils.wrappers import ActionRepeatWrapper, CPUGymWrapper
+
+    _quiet()
+    env = gym.make(ENV_ID, num_envs=1, **_maniskill_kwargs())
+    if repeat > 1:
+        env = ActionRepeatWrapper(env, repeat)
+    return CPUGymWrapper(env)
+
+
+def _worker_env(repeat: int):
+    """One ParallelEnv worker: ManiSkillEnv -> CPUUnbatch (-> ActionRepeat)."""
+    from torchrl.envs import Compose, TransformedEnv
+
+    from maniskill_torchrl import ActionRepeat, CPUUnbatch, ManiSkillEnv
+
+    _quiet()
+    transforms = [CPUUnbatch()] + ([ActionRepeat(repeat)] if repeat > 1 else [])
+    return TransformedEnv(ManiSkillEnv(ENV_ID, **_maniskill_kwargs()), Compose(*transforms))
+
+
+class _CPUMeter:
+    """CPU time of this process, of its live descendants (the worker processes), and of the machine."""
+
+    def __init__(self) -> None:
+        import psutil
+
+        self._me = psutil.Process()
+
+    def workers(self) -> dict[int, float]:
+        out = {}
+        for p in self._me.children(recursive=True):
+            try:
+                t = p.cpu_times()
+                out[p.pid] = t.user + t.system
+            except Exception:  # noqa: BLE001 - a process that just exited
+                pass
+        return out
+
+    def snapshot(self) -> tuple:
+        return time.process_time(), self.workers(), _machine_jiffies(), time.perf_counter()
+
+    @staticmethod
+    def delta(a, b) -> tuple[float, float, float | None]:
+        """(main CPU s, workers CPU s, cores kept busy by other processes meanwhile, or None)."""
+        main = b[0] - a[0]
+        workers = sum(t - a[1].get(pid, 0.0) for pid, t in b[1].items())
+        others = None
+        if a[2] is not None and b[2] is not None:
+            busy_s = (b[2][0] - a[2][0]) / os.sysconf("SC_CLK_TCK")
+            others = max(0.0, (busy_s - main - workers) / (b[3] - a[3]))
+        return main, workers, others
+
+
+def _machine_jiffies() -> tuple[int, int] | None:
+    """Busy and total jiffies of all cores (Linux /proc/stat), or None."""
+    try:
+        with open("/proc/stat") as f:
+            v = [int(x) for x in f.readline().split()[1:9]]
+    except (OSError, ValueError):
+        return None
+    return sum(v) - v[3] - v[4], sum(v)
+
+
+def _measured(frames: int, wall: float, a, b) -> dict:
+    main_cpu, workers_cpu, others = _CPUMeter.delta(a, b)
+    out = {"units": frames, "wall_s": wall, "cpu_s": main_cpu, "workers_cpu_s": workers_cpu}
+    if others is not None:
+        out["others_cores"] = round(others, 3)
+    return out
+
+
+def _parse_options(spec: str) -> tuple[str, dict[str, str]]:
+    kind, _, rest = spec.partition(":")
+    opts: dict[str, str] = {}
+    for item in filter(None, rest.split(",")):
+        k, _, v = item.partition("=")
+        opts[k] = v or "1"
+    return kind, opts
+
+
+def _time_collector(collector, seconds: float, meter: _CPUMeter) -> dict:
+    it = iter(collector)
+    next(it)  # warm-up: first reset and one batch, untimed
+    frames = 0
+    a = meter.snapshot()
+    t0 = time.perf_counter()
+    while True:
+        batch = next(it)
+        frames += batch.numel()
+        wall = time.perf_counter() - t0
+        if wall >= seconds:
+            break
+    b = meter.snapshot()
+    return _measured(frames, wall, a, b)
+
+
+def child_gym(n: int, repeat: int, seconds: float, opts: dict) -> dict:
+    import functools
+
+    import gymnasium as gym
+
+    meter = _CPUMeter()
+    envs = gym.vector.AsyncVectorEnv([functools.partial(_gym_thunk, repeat)] * n, context="forkserver")
+    envs.reset(seed=SEED)
+    envs.action_space.seed(SEED)
+    sample, step = envs.action_space.sample, envs.step
+    for _ in range(EPISODE):  # warm-up
+        step(sample())
+    frames = 0
+    a = meter.snapshot()
+    t0 = time.perf_counter()
+    while True:
+        for _ in range(10):
+            step(sample())
+        frames += 10 * n
+        wall = time.perf_counter() - t0
+        if wall >= seconds:
+            break
+    b = meter.snapshot()
+    return _measured(frames, wall, a, b)
+
+
+def child_batched(n: int, repeat: int, seconds: float, opts: dict) -> dict:
+    from torchrl.collectors import Collector
+    from torchrl.envs import TransformedEnv
+
+    from maniskill_torchrl import ActionRepeat, ManiSkillEnv
+
+    if "t1" in opts:
+        import torch
+
+        torch.set_num_threads(1)
+    meter = _CPUMeter()
+    try:
+        env = ManiSkillEnv(ENV_ID, num_envs=n, **_maniskill_kwargs())
+    except Exception as err:  # noqa: BLE001 - reported as a skip, e.g. no batched CPU env yet
+        return {"skipped": f"ManiSkillEnv({ENV_ID!r}, num_envs={n}) raised {type(err).__name__}: {err}"}
+    if repeat > 1:
+        env = TransformedEnv(env, ActionRepeat(repeat))
+    env.set_seed(SEED)
+    collector = Collector(env, policy=None, frames_per_batch=EPISODE * n, total_frames=-1)
+    return _time_collector(collector, seconds, meter)
+
+
+def child_parallel(n: int, repeat: int, seconds: float, opts: dict) -> dict:
+    import functools
+
+    import torch
+    from torchrl.collectors import Collector
+
+    if "t1" in opts:
+        torch.set_num_threads(1)
+    kwargs: dict = {}
+    if "nobuf" in opts:
+        kwargs["use_buffers"] = False
+    if "mp" in opts:
+        kwargs["mp_start_method"] = opts["mp"]
+    if "lib" in opts or "wait" in opts or "nobatch" in opts:
+        from maniskill_torchrl.parallel import ParallelEnv
+
+        if "wait" in opts:
+            kwargs["wait"] = opts["wait"]
+    else:
+        from torchrl.envs import ParallelEnv
+    if "nobatch" in opts:
+        kwargs["batch_workers"] = False
+    meter = _CPUMeter()
+    if opts:
+        env = ParallelEnv(n, functools.partial(_worker_env, repeat), **kwargs)
+    else:  # as users write it: a lambda (TorchRL wraps it in an EnvCreator, which builds one env here)
+        env = ParallelEnv(n, lambda: _worker_env(repeat))
+    env.set_seed(SEED)
+    collector = Collector(env, policy=None, frames_per_batch=EPISODE * n, total_frames=-1)
+    out = _time_collector(collector, seconds, meter)
+    out["main_threads"] = torch.get_num_threads()
+    return out
+
+
+def child_multisync(n: int, repeat: int, seconds: float, opts: dict) -> dict:
+    """``Collector(make_env, backend="process", num_collectors=N)``: one env and one collector
+    per process (TorchRL's ``MultiSyncCollector``), batches gathered per batch, not per step."""
+    import functools
+
+    from torchrl.collectors import Collector
+
+    meter = _CPUMeter()
+    collector = Collector(
+        functools.partial(_worker_env, repeat),
+        policy=None,
+        frames_per_batch=EPISODE * n,
+        total_frames=-1,
+        backend="process",
+        num_collectors=n,
+        sync=opts.get("sync", "1") == "1",
+    )
+    collector.set_seed(SEED)
+    return _time_collector(collector, seconds, meter)
+
+
+CHILDREN = {"gym": child_gym, "batched": child_batched, "parallel": child_parallel, "multisync": child_multisync}
+
+
+def run_child(spec: str, n: int, repeat: int, seconds: float) -> None:
+    _quiet()
+    kind, opts = _parse_options(spec)
+    if kind not in CHILDREN:
+        raise SystemExit(f"unknown pipeline {spec!r}; kinds: {sorted(CHILDREN)}")
+    t0 = time.perf_counter()
+    out = CHILDREN[kind](n, repeat, seconds, opts)
+    out["child_s"] = round(time.perf_counter() - t0, 2)
+    child_result(**out)
+    sys.stdout.flush()
+    # No teardown (closing SAPIEN in every worker takes seconds and is not measured): the parent
+    # ends what is left of this process's session (alternate.alternate_processes).
+    os._exit(0)
