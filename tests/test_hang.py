@@ -25,7 +25,7 @@ import sys
 
 import pytest
 
-TIMEOUT_S = 300  # four engines start on 2 cores: ~50 s when idle
+TIMEOUT_S = 300  # four engines start on 2 cores: about a minute when idle
 
 SCRIPT = """
 import multiprocessing as mp

@@ -107,6 +107,8 @@ def test_same_rollout_as_torchrl_parallelenv(torchrl_rollout: TensorDict, wait: 
 
 def test_worker_crash_raises_quickly() -> None:
     env = ParallelEnv(2, crashing_toy, wait="sleep")
+    # Start the workers first (spawn + imports: 5-15 s on a busy machine): the limit is on the crash.
+    env.reset()
     t0 = time.perf_counter()
     with pytest.raises(RuntimeError, match="dead"):
         run(env, steps=6)
