@@ -175,8 +175,23 @@ def child_batched(n: int, repeat: int, seconds: float, opts: dict) -> dict:
     if repeat > 1:
         env = TransformedEnv(env, ActionRepeat(repeat))
     env.set_seed(SEED)
-    collector = Collector(env, policy=None, frames_per_batch=EPISODE * n, total_frames=-1)
+    policy, kwargs = _collector_options(env, opts)
+    collector = Collector(env, policy=policy, frames_per_batch=EPISODE * n, total_frames=-1, **kwargs)
     return _time_collector(collector, seconds, meter)
+
+
+def _collector_options(env, opts: dict) -> tuple:
+    """The policy and Collector keywords that ``batched``'s options ask for (``README``, "Fast collection")."""
+    policy, kwargs = None, {}
+    if "rp" in opts:  # the leaf action spec: RandomPolicy skips Composite.rand (root cause 4)
+        from torchrl.modules import RandomPolicy
+
+        policy = RandomPolicy(env.action_spec)
+    if "dev" in opts:  # a parameterless policy has no device: without this the carrier is cast every step
+        kwargs["device"] = env.device
+    if "notraj" in opts:
+        kwargs["track_traj_ids"] = False
+    return policy, kwargs
 
 
 def child_parallel(n: int, repeat: int, seconds: float, opts: dict) -> dict:

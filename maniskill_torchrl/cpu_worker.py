@@ -103,6 +103,11 @@ class StepInObservation(gym.Wrapper):
     :meth:`set_repeat` ``(k)`` makes each ``step`` go through the gym shim's
     :class:`~maniskill_torchrl.wrappers.ActionRepeatWrapper` (ManiSkill's, bit for bit)
     around the env: up to ``k`` steps in this worker, none after its episode's end.
+
+    Every call into the env runs under :func:`torch.inference_mode`: a ManiSkill step is
+    hundreds of small torch ops, and inference mode skips autograd's bookkeeping for each
+    (same values, less CPU). The sim's tensors become inference tensors, which is safe here
+    because nothing but numpy copies leaves the worker.
     """
 
     def __init__(self, env: gym.Env) -> None:
@@ -125,6 +130,7 @@ class StepInObservation(gym.Wrapper):
         self._stepper: gym.Env = env  # what step() steps: the env, or an ActionRepeatWrapper around it
         self.repeat = 1
 
+    @torch.inference_mode()
     def set_repeat(self, repeat: int) -> None:
         """From the next ``step`` on, each action is applied up to ``repeat`` times (1: plain steps)."""
         if repeat == 1:
@@ -136,8 +142,13 @@ class StepInObservation(gym.Wrapper):
             self._stepper = ActionRepeatWrapper(self.env, repeat)
         self.repeat = repeat
 
+    @torch.inference_mode()
     def render_frame_shape(self) -> tuple[int, ...]:
         return render_frame_shape(self.env.unwrapped)
+
+    @torch.inference_mode()
+    def render(self) -> Any:
+        return self.env.render()
 
     def _pack(self, obs: Any, info: Mapping, reward: Any, terminated: Any, truncated: Any) -> dict:
         return {
@@ -148,10 +159,12 @@ class StepInObservation(gym.Wrapper):
             TRUNCATED: truncated,
         }
 
+    @torch.inference_mode()
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         obs, info = self.env.reset(seed=seed, options=options)
         return self._pack(obs, info, np.float32(0), False, False), {}
 
+    @torch.inference_mode()
     def step(self, action: Any):
         obs, reward, terminated, truncated, info = self._stepper.step(_batch(action))
         packed = self._pack(obs, info, reward[0].numpy(), terminated[0].numpy(), truncated[0].numpy())
