@@ -116,6 +116,9 @@ def _collect(args: argparse.Namespace, policy_name: str, env_kwargs: dict[str, A
         # Endless, stopped by the loop below: with a frame budget the Collector closes the
         # env (seconds of worker teardown) before it hands over the last batch.
         total_frames=-1,
+        # Neither policy has parameters, so neither has a device: without one the Collector
+        # casts its carrier to the env's device at every step.
+        device=env.device,
         # Neither policy keeps a recurrent state: no InitTracker needed.
         auto_register_policy_transforms=False,
     )

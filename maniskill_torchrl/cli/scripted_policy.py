@@ -72,6 +72,8 @@ def make_policy(name: str, env: Any, seed: int):
         return make_scripted_policy(noise=SCRIPTED_NOISE, seed=seed)
     from torchrl.collectors import RandomPolicy
 
+    if len(env.action_keys) == 1:  # the leaf spec: skips Composite.rand's per-call cost in tensordict
+        return RandomPolicy(env.action_spec, action_key=env.action_key)
     return RandomPolicy(env.full_action_spec)
 
 
