@@ -14,6 +14,50 @@ warnings.filterwarnings("ignore", message=".*precision lowered by casting.*")
 warnings.filterwarnings("ignore", module="mani_skill")
 
 
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """Each test module with a selected test that defines ``start_early()`` gets it called once,
+    right after collection (not with ``--collect-only``): ``test_hang.py`` starts its script of
+    several processes there, which then runs beside the tests before it instead of after them."""
+    if session.config.option.collectonly:
+        return
+    started = set()
+    for item in session.items:
+        module = getattr(item, "module", None)
+        if module is not None and module not in started and hasattr(module, "start_early"):
+            started.add(module)
+            module.start_early()
+
+
 @pytest.fixture(scope="session")
 def torch_single_thread():
     torch.set_num_threads(1)
+
+
+_RENDERER: list = []  # the render system held for the session, once a test has made one
+
+
+@pytest.fixture(autouse=True)
+def _keep_sapien_renderer():
+    """Keeps SAPIEN's render engine alive in this process once a test has created one.
+
+    SAPIEN frees its engine when the last ManiSkill env that renders is freed (module fixtures
+    close theirs at teardown), and the next env's first picture builds it again: 6-10 s of CPU
+    rendering with Mesa's lavapipe, paid in every test module that renders. Held from the first
+    test that loaded the Vulkan driver on (never earlier: the fork guards and
+    ``test_vulkan_loaded_after_a_maniskill_env`` see this process as the tests made it), on the
+    CPU render device only (the one ManiSkill falls back to without CUDA; SAPIEN renders on one
+    device per process). The pictures are the same: only the engine's start-up is skipped.
+    """
+    yield
+    if _RENDERER or torch.cuda.is_available():
+        return
+    from maniskill_torchrl._mp import vulkan_loaded
+
+    if not vulkan_loaded():
+        return
+    import sapien
+
+    try:
+        _RENDERER.append(sapien.render.RenderSystem(sapien.Device("cpu")))
+    except Exception:  # noqa: BLE001 - a speed-up only: without it the tests run as before
+        _RENDERER.append(None)

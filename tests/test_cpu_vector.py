@@ -8,8 +8,10 @@ starts with ``reset(seed=s + i)``; every later reset event draws ``d`` from
 
 from __future__ import annotations
 
+import itertools
 import os
 import signal
+import sys
 
 import gymnasium as gym
 import numpy as np
@@ -21,7 +23,7 @@ from torchrl.data import Bounded
 from torchrl.envs import Compose, TransformedEnv
 from torchrl.envs.utils import check_env_specs, step_mdp
 
-from helpers import make_gym_env, random_actions
+from helpers import make_gym_env, random_actions, start
 from maniskill_torchrl import (
     ActionRepeat,
     CPUUnbatch,
@@ -45,11 +47,64 @@ def cartpole():
     env.close()
 
 
+def _closed(env) -> bool:
+    """Closed, or its CPUVectorEnv closed (after a worker died)."""
+    return env.is_closed or getattr(env._env, "_closed", False) is True
+
+
 @pytest.fixture(scope="module")
-def pick():
-    env = ManiSkillEnv("PickCube-v1", num_envs=N, **PICK)
-    yield env
-    env.close()
+def shared_envs():
+    """Batched envs shared by the tests of this module (each costs seconds of worker start-up),
+    made on first use. A test that closes one (on purpose: ``test_dead_worker_...``,
+    ``test_wrapper_...``) runs after the others that use it; one that finds it closed (another
+    order, ``-k``) gets a new one."""
+    makers = {
+        "pick": lambda: ManiSkillEnv("PickCube-v1", num_envs=N, **PICK),
+        # made by hand, as ManiSkillEnv(num_envs=3) makes it; an odd batch, flat observations
+        "pick_vec": lambda: ManiSkillWrapper(CPUVectorEnv("PickCube-v1", 3, obs_mode="state", max_episode_steps=4)),
+    }
+    made: dict = {}
+
+    def get(name: str):
+        if name not in made or _closed(made[name]):
+            made[name] = makers[name]()
+        return made[name]
+
+    yield get
+    for env in made.values():
+        env.close()
+
+
+@pytest.fixture
+def pick(shared_envs):
+    """``ManiSkillEnv("PickCube-v1", num_envs=2)``, state_dict observations, 5-step episodes;
+    killed by the last test that uses it, ``test_dead_worker_raises_instead_of_hanging``."""
+    return shared_envs("pick")
+
+
+@pytest.fixture
+def pick_vec(shared_envs):
+    """``ManiSkillWrapper(CPUVectorEnv("PickCube-v1", 3))``, state observations, 4-step episodes;
+    closed by the last test that uses it, ``test_wrapper_accepts_a_cpu_vector_env``."""
+    return shared_envs("pick_vec")
+
+
+@pytest.fixture(scope="module", autouse=True)
+def no_guard_script(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory):
+    """The script of ``test_script_without_main_guard_gets_a_clear_error``, started with the
+    module's first test when that test is selected: alone it runs for 15-25 s (two processes
+    importing torch, TorchRL and ManiSkill one after the other), mostly on one core, while the
+    other tests of the module leave that core idle for seconds at a time. Killed at the end."""
+    name = "test_script_without_main_guard_gets_a_clear_error"
+    if not any(item.name == name and item.module is request.module for item in request.session.items):
+        yield None
+        return
+    folder = tmp_path_factory.mktemp("no_guard")
+    script = folder / "no_guard.py"
+    script.write_text('from maniskill_torchrl import ManiSkillEnv\nManiSkillEnv("PushCube-v1", num_envs=2)\n')
+    handle = start([sys.executable, str(script)], cwd=folder)
+    yield handle
+    handle.kill()
 
 
 def _leaves(x, prefix=()):
@@ -98,12 +153,8 @@ def test_specs_are_the_single_env_specs_batched(pick):
     assert ("agent", "qpos") in pick.observation_spec.keys(True, True)
 
 
-def test_check_env_specs():
-    env = ManiSkillEnv("PickCube-v1", num_envs=3, obs_mode="state")
-    try:
-        check_env_specs(env, seed=0)
-    finally:
-        env.close()
+def test_check_env_specs(pick_vec):
+    check_env_specs(pick_vec, seed=0)
 
 
 def test_each_sub_env_equals_a_raw_env(cartpole):
@@ -209,21 +260,20 @@ def test_action_repeat_equals_maniskill_wrapper(cartpole):
             o.close()
 
 
-def test_collector_with_transforms():
-    env = TransformedEnv(
-        ManiSkillEnv("PickCube-v1", num_envs=N, obs_mode="state", max_episode_steps=4),
-        Compose(ActionRepeat(2), EpisodeMetrics()),
-    )
+def test_collector_with_transforms(pick_vec):
+    env = TransformedEnv(pick_vec, Compose(ActionRepeat(2), EpisodeMetrics()))  # 4-step episodes
+    n = env.batch_size[0]
     env.set_seed(0)
-    collector = Collector(env, None, frames_per_batch=8 * N, total_frames=16 * N)
+    # total_frames=-1 and two batches: a finite run closes the env when it ends, and it is shared.
+    collector = Collector(env, None, frames_per_batch=8 * n, total_frames=-1)
     try:
-        batches = list(collector)
+        batches = list(itertools.islice(collector, 2))
     finally:
-        collector.shutdown()
-    assert len(batches) == 2 and batches[0].shape == (N, 8)
+        collector.shutdown(close_env=False)
+    assert len(batches) == 2 and batches[0].shape == (n, 8)
     batch = torch.cat(batches, 1)
     done = batch["next", "done"].squeeze(-1)
-    assert int(done.sum()) == 16 * N // 2  # an episode every 2 agent steps, in each sub-env
+    assert int(done.sum()) == 16 * n // 2  # an episode every 2 agent steps, in each sub-env
     assert (batch["next", "episode", "episode_len"][done] == 2).all()
     assert (batch["next", "elapsed_steps"][done] == 4).all()
 
@@ -271,27 +321,16 @@ def test_dict_actions():
         env.close()
 
 
-def test_wrapper_accepts_a_cpu_vector_env():
-    vec = CPUVectorEnv("PickCube-v1", N, obs_mode="state")
-    env = ManiSkillWrapper(vec)
+def test_wrapper_accepts_a_cpu_vector_env(pick_vec):
+    """``pick_vec`` is ``ManiSkillWrapper(CPUVectorEnv(...))``; closing the wrapper stops the workers."""
+    env, vec = pick_vec, pick_vec._env
+    assert isinstance(vec, CPUVectorEnv)
     try:
-        assert env.batch_size == torch.Size([N])
-        assert env.rand_step(env.reset(seed=0))["next", "observation"].shape == (N, 42)
+        assert env.batch_size == torch.Size([3])
+        assert env.rand_step(env.reset(seed=0))["next", "observation"].shape == (3, 42)
     finally:
         env.close()
     assert all(not p.is_alive() for p in vec._vec.processes)
-
-
-def test_dead_worker_raises_instead_of_hanging():
-    env = ManiSkillEnv("PickCube-v1", num_envs=N, obs_mode="state")
-    td = env.reset(seed=0)
-    worker = env._env._vec.processes[1]
-    os.kill(worker.pid, signal.SIGKILL)
-    worker.join(5)
-    with pytest.raises(RuntimeError, match=r"worker\(s\) \[1\] of PickCube-v1 died during step"):
-        env.rand_step(td)
-    assert all(not p.is_alive() for p in env._env._vec.processes)
-    env.close()  # closing again is harmless
 
 
 def test_bad_input(pick):
@@ -306,14 +345,22 @@ def test_bad_input(pick):
     assert pick.step(td.set("action", torch.zeros(N, 8)))["next", "reward"].shape == (N, 1)
 
 
-def test_script_without_main_guard_gets_a_clear_error(tmp_path) -> None:
-    """forkserver workers import the main script again: without a guard they die while starting."""
-    import subprocess
-    import sys
+def test_dead_worker_raises_instead_of_hanging(pick):
+    """Kills a worker of the shared ``pick`` env: the last test that uses it."""
+    env = pick
+    td = env.reset(seed=0)
+    worker = env._env._vec.processes[1]
+    os.kill(worker.pid, signal.SIGKILL)
+    worker.join(5)
+    with pytest.raises(RuntimeError, match=r"worker\(s\) \[1\] of PickCube-v1 died during step"):
+        env.rand_step(td)
+    assert all(not p.is_alive() for p in env._env._vec.processes)
+    env.close()  # closing again is harmless
 
-    script = tmp_path / "no_guard.py"
-    script.write_text('from maniskill_torchrl import ManiSkillEnv\nManiSkillEnv("PushCube-v1", num_envs=2)\n')
-    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=240)
+
+def test_script_without_main_guard_gets_a_clear_error(no_guard_script) -> None:
+    """forkserver workers import the main script again: without a guard they die while starting."""
+    proc = no_guard_script.result(check=False)
     assert proc.returncode != 0
     assert "a worker process died while starting" in proc.stderr, proc.stderr[-3000:]
     assert "if __name__ == '__main__':" in proc.stderr, proc.stderr[-3000:]

@@ -2,48 +2,117 @@
 
 Each runs as a subprocess in a small configuration, the way a user starts it,
 and the test checks its exit code, its printed lines and the files it writes.
-Flag validation runs in-process (no simulator is built). On 2 busy CPU cores
-the whole file takes about a minute and a half; nothing here is skipped.
+Flag validation runs in-process (no simulator is built). The runs overlap, two at
+a time (:func:`runs`): alone, each leaves a core idle for seconds while its main
+process imports torch, TorchRL and ManiSkill. On 2 CPU cores the whole file takes
+one to one and a half minutes; nothing here is skipped.
 """
 
 from __future__ import annotations
 
 import json
 import sys
+import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
 
-from helpers import EXAMPLES, run
+from helpers import EXAMPLES, TIMEOUT_S, Started, start
 from maniskill_torchrl import cli
 
 BIN = Path(sys.executable).parent
 
+# test name -> the command it runs, given its working folder
+COMMANDS: dict[str, Callable[[Path], list[str]]] = {
+    "test_demo_console_script_end_to_end": lambda cwd: [
+        str(BIN / "maniskill-torchrl"),
+        "demo",
+        "--frames",
+        "200",
+        "--workers",
+        "2",
+        "--video-steps",
+        "4",
+        "--video-size",
+        "64",
+        "--out",
+        str(cwd / "demo"),
+        "--no-progress",
+    ],
+    "test_python_dash_m_help": lambda cwd: [sys.executable, "-m", "maniskill_torchrl", "demo", "--help"],
+    "test_ppo_smoke": lambda cwd: [
+        sys.executable,
+        str(EXAMPLES / "ppo_torchrl.py"),
+        "--smoke",
+        "--out",
+        str(cwd / "ppo"),
+    ],
+    "test_evaluate_gym": lambda cwd: [
+        sys.executable,
+        str(EXAMPLES / "evaluate_gym.py"),
+        "--num-envs",
+        "1",
+        "--episodes",
+        "2",
+        "--max-episode-steps",
+        "10",
+        "--seed",
+        "1",
+    ],
+    "test_migrate_from_maniskill": lambda cwd: [
+        sys.executable,
+        str(EXAMPLES / "migrate_from_maniskill.py"),
+        "--steps",
+        "12",
+        "--max-episode-steps",
+        "10",
+        "--repeat",
+        "2",
+    ],
+}
+
+
+@pytest.fixture(scope="module")
+def runs(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Callable]:
+    """``runs(name)`` -> (the finished run of test ``name``, checked as ``helpers.run`` checks it;
+    its working folder). The runs of the selected tests start in their order, two at a time:
+    while a test waits for its own, the next ones start as others end. Runs left are killed."""
+    order = [item.name for item in request.session.items if item.module is request.module and item.name in COMMANDS]
+    started: dict[str, tuple[Started, Path]] = {}
+
+    def begin(name: str) -> None:
+        if name not in started:
+            cwd = tmp_path_factory.mktemp(name.removeprefix("test_"))
+            started[name] = (start(COMMANDS[name](cwd), cwd=cwd), cwd)
+
+    def fill() -> None:
+        for name in order:
+            if sum(handle.running() for handle, _ in started.values()) >= 2:
+                return
+            begin(name)
+
+    def get(name: str):
+        begin(name)
+        handle, cwd = started[name]
+        deadline = time.monotonic() + TIMEOUT_S
+        while handle.running() and time.monotonic() < deadline:
+            fill()
+            time.sleep(0.2)
+        return handle.result(), cwd
+
+    yield get
+    for handle, _ in started.values():
+        handle.kill()
+
 
 # ----------------------------------------------------------------------------- demo
-def test_demo_console_script_end_to_end(tmp_path: Path) -> None:
+def test_demo_console_script_end_to_end(runs) -> None:
     """``maniskill-torchrl demo`` (what ``make demo`` runs) with few frames and a tiny video."""
     script = BIN / "maniskill-torchrl"
     assert script.exists(), f"console script not installed at {script}: pip install -e . in this venv"
-    out = tmp_path / "demo"
-    proc = run(
-        [
-            str(script),
-            "demo",
-            "--frames",
-            "200",
-            "--workers",
-            "2",
-            "--video-steps",
-            "4",
-            "--video-size",
-            "64",
-            "--out",
-            str(out),
-            "--no-progress",
-        ],
-        cwd=tmp_path,
-    )
+    proc, cwd = runs("test_demo_console_script_end_to_end")
+    out = cwd / "demo"
     stdout = proc.stdout
     for line in (
         "maniskill-torchrl demo summary",
@@ -138,8 +207,8 @@ def test_demo_out_must_be_a_folder(tmp_path: Path, capsys) -> None:
     assert "exists and is not a folder" in capsys.readouterr().err
 
 
-def test_python_dash_m_help(tmp_path: Path) -> None:
-    proc = run([sys.executable, "-m", "maniskill_torchrl", "demo", "--help"], cwd=tmp_path)
+def test_python_dash_m_help(runs) -> None:
+    proc, _ = runs("test_python_dash_m_help")
     for flag in ("--env-id", "--repeat", "--frames", "--workers", "--out", "--seed", "--no-video"):
         assert flag in proc.stdout
 
@@ -161,9 +230,9 @@ def test_scripted_policy_is_batched_and_bounded() -> None:
 
 
 # ------------------------------------------------------------------------- examples
-def test_ppo_smoke(tmp_path: Path) -> None:
-    out = tmp_path / "ppo"
-    proc = run([sys.executable, str(EXAMPLES / "ppo_torchrl.py"), "--smoke", "--out", str(out)], cwd=tmp_path)
+def test_ppo_smoke(runs) -> None:
+    proc, cwd = runs("test_ppo_smoke")
+    out = cwd / "ppo"
     assert "PPO on PushCube-v1 (CPU sim, 2 envs" in proc.stdout
     iters = [line for line in proc.stdout.splitlines() if line.startswith("iter")]
     assert len(iters) == 3, proc.stdout
@@ -182,22 +251,10 @@ def test_ppo_smoke(tmp_path: Path) -> None:
     assert any(k.endswith("weight") for k in ckpt["policy"]) and any(k.endswith("weight") for k in ckpt["value"])
 
 
-def test_evaluate_gym(tmp_path: Path) -> None:
-    proc = run(
-        [
-            sys.executable,
-            str(EXAMPLES / "evaluate_gym.py"),
-            "--num-envs",
-            "2",
-            "--episodes",
-            "2",
-            "--max-episode-steps",
-            "10",
-            "--seed",
-            "1",
-        ],
-        cwd=tmp_path,
-    )
+def test_evaluate_gym(runs) -> None:
+    """The random policy without a checkpoint. One sub-env: its second episode starts with
+    gymnasium's autoreset step (``tests/test_evaluate.py`` runs two sub-envs, with a checkpoint)."""
+    proc, _ = runs("test_evaluate_gym")
     lines = [line for line in proc.stdout.splitlines() if line.startswith("episode ")]
     assert len(lines) == 2, proc.stdout
     for line in lines:
@@ -208,19 +265,7 @@ def test_evaluate_gym(tmp_path: Path) -> None:
         assert avg in proc.stdout
 
 
-def test_migrate_from_maniskill(tmp_path: Path) -> None:
-    proc = run(
-        [
-            sys.executable,
-            str(EXAMPLES / "migrate_from_maniskill.py"),
-            "--steps",
-            "12",
-            "--max-episode-steps",
-            "10",
-            "--repeat",
-            "2",
-        ],
-        cwd=tmp_path,
-    )
+def test_migrate_from_maniskill(runs) -> None:
+    proc, _ = runs("test_migrate_from_maniskill")
     assert "identical: True" in proc.stdout, proc.stdout
     assert proc.stdout.count("reset") >= 2 * 3  # both columns: the first reset and two seeded resets

@@ -15,17 +15,26 @@ TorchRL and ManiSkill in the parent and in every worker): TorchRL's first, as it
 global start method that the gym stage left; the library's ParallelEnv starts its workers with
 "spawn" whatever that global says. A stage that raises is reported and the next ones still run;
 each test checks its own stage and the ones around it.
+
+The gym and ParallelEnv stages start one worker each: one process pins the start method, and one
+forked worker building a ManiSkill env is enough to hang; every extra worker costs seconds of
+imports. The batched env needs two (``num_envs=1`` runs in-process).
 """
 
 from __future__ import annotations
 
+import atexit
 import os
+import shutil
+import signal
 import subprocess
 import sys
+import tempfile
+from pathlib import Path
 
 import pytest
 
-TIMEOUT_S = 300  # four engines start on 2 cores: about a minute when idle
+TIMEOUT_S = 300  # four engines start on 2 cores: under a minute when idle
 
 SCRIPT = """
 import multiprocessing as mp
@@ -55,10 +64,10 @@ def single():
 
 
 def parallel(ParallelEnv):
-    penv = ParallelEnv(2, single)
+    penv = ParallelEnv(1, single)
     try:
         td = penv.rollout(3)
-        assert td.batch_size == (2, 3), td.batch_size
+        assert td.batch_size == (1, 3), td.batch_size
     finally:
         penv.close()
 
@@ -77,7 +86,7 @@ def stage(name, fn):
 
 if __name__ == "__main__":
     ok = True
-    envs = gym.vector.AsyncVectorEnv([thunk] * 2, context="forkserver")
+    envs = gym.vector.AsyncVectorEnv([thunk], context="forkserver")
     envs.reset(seed=0)
     for _ in range(3):
         envs.step(envs.action_space.sample())
@@ -115,26 +124,67 @@ if __name__ == "__main__":
 """
 
 
-@pytest.fixture(scope="module")
-def sequence(tmp_path_factory) -> subprocess.CompletedProcess:
-    """The script's run, shared by the tests (each checks its own stages)."""
-    tmp_path = tmp_path_factory.mktemp("hang")
-    script = tmp_path / "sequence.py"
-    script.write_text(SCRIPT)
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    try:
-        return subprocess.run(
+class _Run:
+    """The script, running in its own session (a hung run is killed with its workers)."""
+
+    def __init__(self, folder: Path) -> None:
+        script = folder / "sequence.py"
+        script.write_text(SCRIPT)
+        self.out, self.err = (open(folder / name, "w+") for name in ("stdout.txt", "stderr.txt"))
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        self.proc = subprocess.Popen(
             [sys.executable, str(script)],
-            cwd=tmp_path,
+            cwd=folder,
             env=env,
-            capture_output=True,
+            stdout=self.out,
+            stderr=self.err,
             text=True,
-            timeout=TIMEOUT_S,
             start_new_session=True,
         )
-    except subprocess.TimeoutExpired as err:
-        out = (err.stdout or b"").decode() if isinstance(err.stdout, bytes) else (err.stdout or "")
-        pytest.fail(f"the sequence hung (killed after {TIMEOUT_S} s); stdout so far:\n{out[-3000:]}")
+
+    def wait(self) -> subprocess.CompletedProcess:
+        try:
+            self.proc.wait(timeout=TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            self.kill()
+            pytest.fail(f"the sequence hung (killed after {TIMEOUT_S} s); stdout so far:\n{self._read()[0][-3000:]}")
+        return subprocess.CompletedProcess(self.proc.args, self.proc.returncode, *self._read())
+
+    def _read(self) -> tuple[str, str]:
+        self.out.seek(0)
+        self.err.seek(0)
+        return self.out.read(), self.err.read()
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            try:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+            self.proc.wait()
+
+
+_EARLY: list[_Run] = []
+
+
+def start_early() -> None:
+    """Called by ``conftest.py`` once the tests are collected, when a test of this file is selected:
+    the script (about 45 s, most of it on one core: each stage waits for processes that import
+    torch, TorchRL and ManiSkill) then runs while the tests collected before this file run in the
+    pytest process. Killed when pytest exits if no test has waited for it."""
+    folder = Path(tempfile.mkdtemp(prefix="test_hang_"))
+    run = _Run(folder)
+    _EARLY.append(run)
+    atexit.register(shutil.rmtree, folder, ignore_errors=True)
+    atexit.register(run.kill)  # first (atexit runs in reverse order)
+
+
+@pytest.fixture(scope="module")
+def sequence(tmp_path_factory) -> subprocess.CompletedProcess:
+    """The script's run, shared by the tests (each checks its own stages); started early when
+    ``conftest.py`` could (:func:`start_early`)."""
+    run = _EARLY.pop() if _EARLY else _Run(tmp_path_factory.mktemp("hang"))
+    return run.wait()
 
 
 @pytest.mark.parametrize("which", ["library", "torchrl"])

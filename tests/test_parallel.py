@@ -90,14 +90,27 @@ def torchrl_rollout() -> TensorDict:
         ref_env.close()
 
 
-@pytest.mark.parametrize("wait", ["sleep", "spin"])
-def test_same_rollout_as_torchrl_parallelenv(torchrl_rollout: TensorDict, wait: str) -> None:
-    env = ParallelEnv(2, SeededToy, wait=wait)
-    try:
-        got = run(env)
-        assert env.wait == wait
-    finally:
+@pytest.fixture(scope="module")
+def toy_envs():
+    """``ParallelEnv(2, SeededToy, wait=...)`` per wait mode, started once for the module (each
+    spawned worker imports torch and TorchRL): every use seeds its rollout (``run``)."""
+    made: dict[str, ParallelEnv] = {}
+
+    def get(wait: str) -> ParallelEnv:
+        if wait not in made:
+            made[wait] = ParallelEnv(2, SeededToy, wait=wait)
+        return made[wait]
+
+    yield get
+    for env in made.values():
         env.close()
+
+
+@pytest.mark.parametrize("wait", ["sleep", "spin"])
+def test_same_rollout_as_torchrl_parallelenv(torchrl_rollout: TensorDict, toy_envs, wait: str) -> None:
+    env = toy_envs(wait)
+    got = run(env)
+    assert env.wait == wait
     ref = torchrl_rollout
     assert ref["next", "done"].any() and ref["next", "done"].sum() < ref["next", "done"].numel()
     assert set(ref.keys(True, True)) == set(got.keys(True, True))
@@ -128,16 +141,14 @@ def test_wait_and_options() -> None:
 
 
 @pytest.mark.skipif(not hasattr(os, "SCHED_BATCH"), reason="Linux scheduling policy")
-def test_workers_run_as_batch_threads() -> None:
+def test_workers_run_as_batch_threads(toy_envs) -> None:
     assert not ParallelEnv(1, SeededToy, wait="spin")._batch_workers  # only with a sleeping parent
-    env = ParallelEnv(1, SeededToy, wait="sleep")
-    try:
-        env.reset()
-        pid = env._workers[0].pid
-        for tid in os.listdir(f"/proc/{pid}/task"):
+    env = toy_envs("sleep")
+    env.reset()
+    assert len(env._workers) == 2
+    for worker in env._workers:
+        for tid in os.listdir(f"/proc/{worker.pid}/task"):
             assert os.sched_getscheduler(int(tid)) == os.SCHED_BATCH
-    finally:
-        env.close()
     assert not set_batch_policy(2**22 + 12345)  # no such process: nothing to do, no error
 
 
