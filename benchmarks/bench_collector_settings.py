@@ -20,7 +20,6 @@ Run: ``python benchmarks/bench_collector_settings.py [--n 2] [--repeat 1] [--rou
 from __future__ import annotations
 
 import argparse
-import functools
 import logging
 import os
 import statistics
@@ -30,16 +29,19 @@ import warnings
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
-from collection_pipelines import ENV_ID, EPISODE, SEED, _gym_thunk, _maniskill_kwargs  # noqa: E402
+from collection_pipelines import (  # noqa: E402
+    ENV_ID,
+    EPISODE,
+    SEED,
+    _maniskill_kwargs,
+    collector_options,
+    gym_vector_env,
+)
 from machine import machine_line  # noqa: E402
 
 
 def _gym(n: int, repeat: int):
-    import gymnasium as gym
-
-    envs = gym.vector.AsyncVectorEnv([functools.partial(_gym_thunk, repeat)] * n, context="forkserver")
-    envs.reset(seed=SEED)
-    envs.action_space.seed(SEED)
+    envs = gym_vector_env(n, repeat)
 
     def batch() -> None:
         for _ in range(EPISODE):
@@ -51,7 +53,6 @@ def _gym(n: int, repeat: int):
 def _batched(n: int, repeat: int, options: list[str]):
     from torchrl.collectors import Collector
     from torchrl.envs import TransformedEnv
-    from torchrl.modules import RandomPolicy
 
     from maniskill_torchrl import ActionRepeat, ManiSkillEnv
 
@@ -59,12 +60,7 @@ def _batched(n: int, repeat: int, options: list[str]):
     if repeat > 1:
         env = TransformedEnv(env, ActionRepeat(repeat))
     env.set_seed(SEED)
-    policy = RandomPolicy(env.action_spec) if "rp" in options else None
-    kwargs: dict = {}
-    if "dev" in options:
-        kwargs["device"] = env.device
-    if "notraj" in options:
-        kwargs["track_traj_ids"] = False
+    policy, kwargs = collector_options(env, dict.fromkeys(options, "1"))
     collector = Collector(env, policy=policy, frames_per_batch=EPISODE * n, total_frames=-1, **kwargs)
     batches = iter(collector)
     return lambda: next(batches)

@@ -131,15 +131,21 @@ def _time_collector(collector, seconds: float, meter: _CPUMeter) -> dict:
     return _measured(frames, wall, a, b)
 
 
-def child_gym(n: int, repeat: int, seconds: float, opts: dict) -> dict:
+def gym_vector_env(n: int, repeat: int):
+    """The gym path's vector env, reset and its action space seeded."""
     import functools
 
     import gymnasium as gym
 
-    meter = _CPUMeter()
     envs = gym.vector.AsyncVectorEnv([functools.partial(_gym_thunk, repeat)] * n, context="forkserver")
     envs.reset(seed=SEED)
     envs.action_space.seed(SEED)
+    return envs
+
+
+def child_gym(n: int, repeat: int, seconds: float, opts: dict) -> dict:
+    meter = _CPUMeter()
+    envs = gym_vector_env(n, repeat)
     sample, step = envs.action_space.sample, envs.step
     for _ in range(EPISODE):  # warm-up
         step(sample())
@@ -175,12 +181,12 @@ def child_batched(n: int, repeat: int, seconds: float, opts: dict) -> dict:
     if repeat > 1:
         env = TransformedEnv(env, ActionRepeat(repeat))
     env.set_seed(SEED)
-    policy, kwargs = _collector_options(env, opts)
+    policy, kwargs = collector_options(env, opts)
     collector = Collector(env, policy=policy, frames_per_batch=EPISODE * n, total_frames=-1, **kwargs)
     return _time_collector(collector, seconds, meter)
 
 
-def _collector_options(env, opts: dict) -> tuple:
+def collector_options(env, opts: dict) -> tuple:
     """The policy and Collector keywords that ``batched``'s options ask for (``README``, "Fast collection")."""
     policy, kwargs = None, {}
     if "rp" in opts:  # the leaf action spec: RandomPolicy skips Composite.rand (root cause 4)
