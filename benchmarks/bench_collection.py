@@ -14,6 +14,9 @@ Task PickCube-v1, ``obs_mode="state"``, random actions, ``max_episode_steps=50``
 - ``batched``: ``Collector(ManiSkillEnv(id, num_envs=N, obs_mode="state",
   max_episode_steps=50), policy=None)`` (``TransformedEnv(..., ActionRepeat(2))`` for
   repeat 2): the batched CPU env. Skipped with a note when its construction raises;
+- ``batched:<options>``: the same with settings changed (comma-separated options): ``rp``
+  (``policy=RandomPolicy(env.action_spec)``), ``dev`` (``device=env.device``), ``notraj``
+  (``track_traj_ids=False``), ``noinf`` (``inference_mode=False``), ``t1`` (one torch thread);
 - ``parallel``: ``Collector(ParallelEnv(N, lambda: TransformedEnv(ManiSkillEnv(id,
   obs_mode="state", max_episode_steps=50), CPUUnbatch())), policy=None)``, what TorchRL
   users write by habit (``Compose(CPUUnbatch(), ActionRepeat(2))`` inside the workers for
@@ -23,7 +26,7 @@ Task PickCube-v1, ``obs_mode="state"``, random actions, ``max_episode_steps=50``
   ``nobuf`` (``use_buffers=False``), ``mp=<method>`` (``mp_start_method``),
   ``lib`` (:class:`maniskill_torchrl.parallel.ParallelEnv`, the library's settings),
   ``wait=<spin|sleep>`` (that class with the given wait strategy), ``nobatch`` (that class
-  without ``SCHED_BATCH`` workers);
+  without ``SCHED_BATCH`` workers), ``noinf`` (the workers' envs with ``inference_mode=False``);
 - ``multisync``: ``Collector(make_env, backend="process", num_collectors=N)`` (TorchRL's
   ``MultiSyncCollector``: one single env and one collector per process, data gathered per
   batch instead of per step), the same worker env as ``parallel``.

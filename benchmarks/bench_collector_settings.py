@@ -11,7 +11,12 @@ in the gym workers with ``--repeat 2``):
   ``step(action_space.sample())`` 50 times per batch;
 - ``batched``: ``Collector(ManiSkillEnv(id, num_envs=N), policy=None)``, TorchRL's defaults;
 - ``batched:<options>``, options joined by ``+``: ``rp`` (``RandomPolicy(env.action_spec)``:
-  the leaf spec), ``dev`` (``device=env.device``), ``notraj`` (``track_traj_ids=False``).
+  the leaf spec), ``dev`` (``device=env.device``), ``notraj`` (``track_traj_ids=False``),
+  ``noinf`` (``ManiSkillEnv(..., inference_mode=False)``: at N=1 the sim runs in this
+  process, in grad mode);
+- ``parallel[:<options>]``: ``Collector(ParallelEnv(N, ManiSkillEnv + CPUUnbatch))`` with
+  :class:`maniskill_torchrl.parallel.ParallelEnv` (``torchrl``: TorchRL's own, started with
+  ``"spawn"``), the options as above (``noinf`` in the workers' envs).
 
 Run: ``python benchmarks/bench_collector_settings.py [--n 2] [--repeat 1] [--rounds 16]
 [--pipelines gym batched batched:rp+dev batched:rp+dev+notraj]``.
@@ -34,7 +39,9 @@ from collection_pipelines import (  # noqa: E402
     EPISODE,
     SEED,
     _maniskill_kwargs,
+    _worker_env,
     collector_options,
+    env_options,
     gym_vector_env,
 )
 from machine import machine_line  # noqa: E402
@@ -56,11 +63,34 @@ def _batched(n: int, repeat: int, options: list[str]):
 
     from maniskill_torchrl import ActionRepeat, ManiSkillEnv
 
-    env = ManiSkillEnv(ENV_ID, num_envs=n, **_maniskill_kwargs())
+    opts = dict.fromkeys(options, "1")
+    env = ManiSkillEnv(ENV_ID, num_envs=n, **_maniskill_kwargs(), **env_options(opts))
     if repeat > 1:
         env = TransformedEnv(env, ActionRepeat(repeat))
     env.set_seed(SEED)
-    policy, kwargs = collector_options(env, dict.fromkeys(options, "1"))
+    policy, kwargs = collector_options(env, opts)
+    collector = Collector(env, policy=policy, frames_per_batch=EPISODE * n, total_frames=-1, **kwargs)
+    batches = iter(collector)
+    return lambda: next(batches)
+
+
+def _parallel(n: int, repeat: int, options: list[str]):
+    import functools
+
+    from torchrl.collectors import Collector
+
+    opts = dict.fromkeys(options, "1")
+    if "torchrl" in opts:
+        from torchrl.envs import ParallelEnv
+
+        kwargs = {"mp_start_method": "spawn"}  # fork would hang once this process holds SAPIEN
+    else:
+        from maniskill_torchrl.parallel import ParallelEnv
+
+        kwargs = {}
+    env = ParallelEnv(n, functools.partial(_worker_env, repeat, **env_options(opts)), **kwargs)
+    env.set_seed(SEED)
+    policy, kwargs = collector_options(env, opts)
     collector = Collector(env, policy=policy, frames_per_batch=EPISODE * n, total_frames=-1, **kwargs)
     batches = iter(collector)
     return lambda: next(batches)
@@ -83,8 +113,10 @@ def main(argv: list[str] | None = None) -> int:
             contenders[spec] = _gym(args.n, args.repeat)
         elif kind == "batched":
             contenders[spec] = _batched(args.n, args.repeat, opts.split("+"))
+        elif kind == "parallel":
+            contenders[spec] = _parallel(args.n, args.repeat, opts.split("+"))
         else:
-            raise SystemExit(f"unknown pipeline {spec!r}: gym or batched[:options]")
+            raise SystemExit(f"unknown pipeline {spec!r}: gym, batched[:options] or parallel[:options]")
     for batch in contenders.values():
         batch()  # warm-up: first reset and one batch
     fps: dict[str, list[float]] = {s: [] for s in contenders}

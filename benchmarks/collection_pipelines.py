@@ -44,7 +44,12 @@ def _gym_thunk(repeat: int):
     return CPUGymWrapper(env)
 
 
-def _worker_env(repeat: int):
+def env_options(opts: dict) -> dict:
+    """The ``ManiSkillEnv`` keywords that the options ask for: ``noinf`` (``inference_mode=False``)."""
+    return {"inference_mode": False} if "noinf" in opts else {}
+
+
+def _worker_env(repeat: int, **env_kwargs):
     """One ParallelEnv worker: ManiSkillEnv -> CPUUnbatch (-> ActionRepeat)."""
     from torchrl.envs import Compose, TransformedEnv
 
@@ -52,7 +57,7 @@ def _worker_env(repeat: int):
 
     _quiet()
     transforms = [CPUUnbatch()] + ([ActionRepeat(repeat)] if repeat > 1 else [])
-    return TransformedEnv(ManiSkillEnv(ENV_ID, **_maniskill_kwargs()), Compose(*transforms))
+    return TransformedEnv(ManiSkillEnv(ENV_ID, **_maniskill_kwargs(), **env_kwargs), Compose(*transforms))
 
 
 class _CPUMeter:
@@ -175,7 +180,7 @@ def child_batched(n: int, repeat: int, seconds: float, opts: dict) -> dict:
         torch.set_num_threads(1)
     meter = _CPUMeter()
     try:
-        env = ManiSkillEnv(ENV_ID, num_envs=n, **_maniskill_kwargs())
+        env = ManiSkillEnv(ENV_ID, num_envs=n, **_maniskill_kwargs(), **env_options(opts))
     except Exception as err:  # noqa: BLE001 - reported as a skip, e.g. no batched CPU env yet
         return {"skipped": f"ManiSkillEnv({ENV_ID!r}, num_envs={n}) raised {type(err).__name__}: {err}"}
     if repeat > 1:
@@ -224,7 +229,7 @@ def child_parallel(n: int, repeat: int, seconds: float, opts: dict) -> dict:
         kwargs["batch_workers"] = False
     meter = _CPUMeter()
     if opts:
-        env = ParallelEnv(n, functools.partial(_worker_env, repeat), **kwargs)
+        env = ParallelEnv(n, functools.partial(_worker_env, repeat, **env_options(opts)), **kwargs)
     else:  # as users write it: a lambda (TorchRL wraps it in an EnvCreator, which builds one env here)
         env = ParallelEnv(n, lambda: _worker_env(repeat))
     env.set_seed(SEED)

@@ -32,7 +32,7 @@ class ManiSkillEnv(ManiSkillWrapper):
             (:class:`~maniskill_torchrl.cpu_vector.CPUVectorEnv`, gymnasium's
             ``AsyncVectorEnv`` underneath) with the same keys, specs and dtypes.
         from_pixels (bool): add ``"pixels"`` (sets ``render_mode="rgb_array"``).
-        pixels_only, info_keys, device, allow_done_after_reset: as in
+        pixels_only, info_keys, device, allow_done_after_reset, inference_mode: as in
             :class:`ManiSkillWrapper`.
         **maniskill_kwargs: passed to ``gym.make`` (``obs_mode``,
             ``control_mode``, ``sim_backend``, ``render_mode``,
@@ -58,6 +58,7 @@ class ManiSkillEnv(ManiSkillWrapper):
         pixels_only: bool = False,
         info_keys: list[str] | None = None,
         allow_done_after_reset: bool = False,
+        inference_mode: bool | None = None,
         **maniskill_kwargs: Any,
     ) -> None:
         if env_id not in registered_env_ids():
@@ -95,6 +96,7 @@ class ManiSkillEnv(ManiSkillWrapper):
             pixels_only=pixels_only,
             info_keys=info_keys,
             allow_done_after_reset=allow_done_after_reset,
+            inference_mode=inference_mode,
         )
 
     @property

@@ -28,9 +28,9 @@ __all__ = ["ManiSkillLayout"]
 class ManiSkillLayout:
     """The TensorDict layout of :class:`~maniskill_torchrl.ManiSkillWrapper` (mixed into it).
 
-    Reads the host's ``_env``, ``batch_size``, ``device`` and ``action_keys``; sets the
-    specs and, for ``_step``'s action check, ``_action_names`` (the agents of a Dict action
-    space, else None) and ``_action_shapes``.
+    Reads the host's ``_env``, ``_inference``, ``batch_size``, ``device``, ``action_keys`` and
+    ``render()``; sets the specs and, for ``_step``'s action check, ``_action_names`` (the
+    agents of a Dict action space, else None) and ``_action_shapes``.
     """
 
     def _init_layout(self, *, from_pixels: bool, pixels_only: bool, info_keys: list[str] | None) -> None:
@@ -86,6 +86,8 @@ class ManiSkillLayout:
     def _to_tensordict(self, obs: Any, info: Mapping[str, Any]) -> dict:
         if self._pixels_only:
             source = {}
+        elif self._inference:  # made under inference mode: copies, normal tensors for the user
+            source = _copied(obs) if self._obs_is_dict else {"observation": obs.clone()}
         elif self._obs_is_dict:
             source = dict(obs)
         else:
@@ -94,10 +96,18 @@ class ManiSkillLayout:
         for key, td_key in self._info_map:
             source[td_key] = info[key].clone()
         if self._from_pixels:
-            source["pixels"] = self._render_batched(self._env.render())
+            source["pixels"] = self._render_batched(self.render())
         return source
 
     def _action_error(self, tensordict: TensorDictBase, key: str | tuple[str, str], action: Any) -> Exception:
         expected = self._action_shapes[key[1]] if isinstance(key, tuple) else self._action_shapes
         keys = sorted(tensordict.keys(include_nested=True, leaves_only=True), key=str)
         return action_error(type(self).__name__, key, action, expected, keys, self.action_keys)
+
+
+def _copied(obs: Mapping[str, Any]) -> dict:
+    """A nested observation dict with every tensor cloned (other values as they are)."""
+    return {
+        k: v.clone() if isinstance(v, torch.Tensor) else _copied(v) if isinstance(v, Mapping) else v
+        for k, v in obs.items()
+    }

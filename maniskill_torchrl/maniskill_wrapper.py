@@ -10,6 +10,7 @@ builds the ManiSkill env too.
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 from types import ModuleType
 from typing import TYPE_CHECKING, Any
@@ -89,6 +90,18 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
         info_keys (list of str, optional): the info entries to keep; defaults to
             every tensor entry of ``env.unwrapped.get_info()``.
         allow_done_after_reset (bool): passed to :class:`~torchrl.envs.EnvBase`.
+        inference_mode (bool, optional): run ManiSkill's ``step``, ``reset`` and ``render``
+            under :func:`torch.inference_mode`. A CPU-sim step is hundreds of small torch
+            ops, and inference mode skips autograd's bookkeeping for each: the same values
+            for less CPU. The tensors this env returns are copies made outside inference
+            mode, normal tensors. ManiSkill's own state tensors become inference tensors, so
+            calling the ManiSkill env's methods yourself, outside inference mode, after this
+            env stepped it can raise ``"Inplace update to inference tensor outside
+            InferenceMode"`` (PegInsertionSide-v1 does): make those calls under
+            ``torch.inference_mode()``, or pass ``inference_mode=False``. Default: on for a
+            CPU-sim env in this process, off on the GPU sim. A
+            :class:`~maniskill_torchrl.cpu_vector.CPUVectorEnv`'s workers always use it (only
+            numpy copies leave them), whatever this says.
 
     Examples:
         >>> import gymnasium as gym
@@ -127,9 +140,15 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
         pixels_only: bool = False,
         info_keys: list[str] | None = None,
         allow_done_after_reset: bool = False,
+        inference_mode: bool | None = None,
         **kwargs: Any,
     ) -> None:
         base = checked_base_env(env, device, from_pixels=from_pixels, pixels_only=pixels_only)
+        if inference_mode is None:
+            inference_mode = not isinstance(base, CPUVectorEnv) and not base.gpu_sim_enabled
+        # A CPUVectorEnv's workers run inference mode themselves and return numpy copies.
+        self._inference = bool(inference_mode) and not isinstance(base, CPUVectorEnv)
+        self._sim_mode = torch.inference_mode if self._inference else contextlib.nullcontext
         self._seeds_partial_resets = isinstance(base, CPUVectorEnv)
         # A CPUVectorEnv wrapped as is can repeat actions in its workers (ActionRepeat's fast path):
         # each step runs with the repeat asked for it, else with the one the env had when wrapped.
@@ -200,8 +219,11 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
             for k, a in action.items():
                 if a is None or a.shape != self._action_shapes[k]:
                     raise self._action_error(tensordict, ("action", k), a)
-        obs, reward, terminated, truncated, info = self._env.step(action)
+        with self._sim_mode():
+            obs, reward, terminated, truncated, info = self._env.step(action)
         source = self._to_tensordict(obs, info)
+        if self._inference:  # normal tensors for the user (done below is computed out here)
+            reward, terminated, truncated = reward.clone(), terminated.clone(), truncated.clone()
         # ManiSkill gives [B] tensors: unsqueeze is the cheapest way to [B, 1] (view(shape) costs
         # twice as much on the CPU sim, where each op counts); other shapes go through view.
         done = torch.logical_or(terminated, truncated)
@@ -252,7 +274,8 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
             # CPU sub-envs restart from drawn seeds too: reproducible from set_seed, whatever
             # each worker process's global torch RNG holds (unseeded ManiSkill resets draw from it).
             seed = self._seeds.draw() if seed is None else seed
-        obs, info = self._env.reset(seed=seed, options=options)
+        with self._sim_mode():
+            obs, info = self._env.reset(seed=seed, options=options)
         source = self._to_tensordict(obs, info)
         return new_tensordict(source, batch_size=self.batch_size, device=self.device)
 
@@ -262,7 +285,11 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
     # -------------------------------------------------------------- misc
     def render(self) -> Any:
         """ManiSkill's ``render()`` (batched ``[B, H, W, 3]`` uint8 tensor for ``rgb_array``)."""
-        return self._env.render()
+        if not self._inference:
+            return self._env.render()
+        with torch.inference_mode():
+            frame = self._env.render()
+        return frame.clone() if isinstance(frame, torch.Tensor) else frame
 
     def close(self, *, raise_if_closed: bool = True) -> None:
         env = self.__dict__.get("_env")

@@ -423,6 +423,73 @@ def test_from_pixels_equals_maniskill_render(envs):
     check_env_specs(env, seed=0)
 
 
+# ============================================================================ inference mode
+class _ModeProbe(gym.Wrapper):
+    """Records, for each call into the ManiSkill env, whether torch's inference mode was on."""
+
+    def __init__(self, env: gym.Env):
+        super().__init__(env)
+        self.modes: list[tuple[str, bool]] = []
+
+    def step(self, action):
+        self.modes.append(("step", torch.is_inference_mode_enabled()))
+        return self.env.step(action)
+
+    def reset(self, **kwargs):
+        self.modes.append(("reset", torch.is_inference_mode_enabled()))
+        return self.env.reset(**kwargs)
+
+    def render(self):
+        self.modes.append(("render", torch.is_inference_mode_enabled()))
+        return self.env.render()
+
+
+def _inference_leaves(td: TensorDictBase) -> list:
+    return [k for k, v in td.items(True, True) if v.is_inference()]
+
+
+@pytest.mark.parametrize("inference_mode", [None, False])
+def test_inference_mode_calls_and_values(inference_mode):
+    """On the CPU sim the wrapper calls ManiSkill under inference mode unless told not to;
+    the data are the raw loop's either way (the raw loop runs in grad mode)."""
+    env_id, kwargs, _ = CONFIGS["pixels"]
+    probe = _ModeProbe(make_gym_env(env_id, **kwargs))
+    env = ManiSkillWrapper(probe, from_pixels=True, inference_mode=inference_mode)
+    raw = make_gym_env(env_id, **kwargs)
+    try:
+        n = SHORT + 2
+        actions = random_actions(raw.unwrapped.single_action_space, n, seed=5)
+        records = raw_loop(raw, actions, seeds_after_set_seed(8, n + 1))
+        env.set_seed(8)
+        td = env.reset()
+        for t, (a, rec) in enumerate(zip(actions, records)):
+            td, td_next = env.step_and_maybe_reset(td.set("action", as_td_action(a)))
+            assert_step_matches(td, rec, t)
+            td = td_next
+        env.render()
+        expected = inference_mode is None  # the default on the CPU sim
+        assert {kind for kind, _ in probe.modes} == {"step", "reset", "render"}
+        assert all(mode == expected for _, mode in probe.modes), probe.modes
+    finally:
+        close_envs([env, raw])
+
+
+def test_inference_mode_outputs_are_normal_tensors(envs):
+    """What the env returns under its default inference mode can be modified in place (as
+    TorchRL's partial resets and users' transforms do): copies, not inference tensors."""
+    for name in ("pick", "pick_sd", "pixels"):
+        env = envs.torchrl(name)
+        assert env._inference
+        td = env.reset(seed=3)
+        assert not _inference_leaves(td), name
+        td = env.rand_step(td)
+        assert not _inference_leaves(td), name
+        td.apply_(lambda x: x.zero_() if x.dtype != torch.bool else x.logical_not_())
+    frame = envs.torchrl("pixels").render()
+    assert not frame.is_inference()
+    frame.zero_()
+
+
 # ============================================================================ batched envs, collectors
 def test_serial_env_partial_reset(envs):
     env_id, kwargs, _ = CONFIGS["pick"]
