@@ -26,7 +26,8 @@ Task PickCube-v1, ``obs_mode="state"``, random actions, ``max_episode_steps=50``
   ``nobuf`` (``use_buffers=False``), ``mp=<method>`` (``mp_start_method``),
   ``lib`` (:class:`maniskill_torchrl.parallel.ParallelEnv`, the library's settings),
   ``wait=<spin|sleep>`` (that class with the given wait strategy), ``nobatch`` (that class
-  without ``SCHED_BATCH`` workers), ``noinf`` (the workers' envs with ``inference_mode=False``);
+  without ``SCHED_BATCH`` workers), ``noinf`` (the workers' envs with ``inference_mode=False``),
+  ``rp`` and ``dev`` (as for ``batched``);
 - ``multisync``: ``Collector(make_env, backend="process", num_collectors=N)`` (TorchRL's
   ``MultiSyncCollector``: one single env and one collector per process, data gathered per
   batch instead of per step), the same worker env as ``parallel``.

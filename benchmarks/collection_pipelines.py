@@ -233,7 +233,8 @@ def child_parallel(n: int, repeat: int, seconds: float, opts: dict) -> dict:
     else:  # as users write it: a lambda (TorchRL wraps it in an EnvCreator, which builds one env here)
         env = ParallelEnv(n, lambda: _worker_env(repeat))
     env.set_seed(SEED)
-    collector = Collector(env, policy=None, frames_per_batch=EPISODE * n, total_frames=-1)
+    policy, collector_kwargs = collector_options(env, opts)
+    collector = Collector(env, policy=policy, frames_per_batch=EPISODE * n, total_frames=-1, **collector_kwargs)
     out = _time_collector(collector, seconds, meter)
     out["main_threads"] = torch.get_num_threads()
     return out

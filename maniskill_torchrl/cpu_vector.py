@@ -122,9 +122,9 @@ class CPUVectorEnv:
         buf = self._vec.observations  # numpy views of the shared memory
         obs = copy_tree(buf[OBS])
         info = view_tree(buf[INFO])
-        reward = torch.tensor(buf[REWARD])
-        terminated = torch.tensor(buf[TERMINATED])
-        truncated = torch.tensor(buf[TRUNCATED])
+        reward = copy_tree(buf[REWARD])
+        terminated = copy_tree(buf[TERMINATED])
+        truncated = copy_tree(buf[TRUNCATED])
         return obs, reward, terminated, truncated, info
 
     def step(

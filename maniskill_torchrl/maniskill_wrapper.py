@@ -204,8 +204,11 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         workers = self._workers
         if workers is not None:
-            # Taken first, so that a failing step leaves no request behind.
-            repeat, self._next_repeat = self._next_repeat or self._plain_repeat, 0
+            repeat = self._next_repeat
+            if repeat:  # taken first, so that a failing step leaves no request behind
+                self._next_repeat = 0
+            else:  # no write: an nn.Module attribute write costs more than the rest of this block
+                repeat = self._plain_repeat
             if workers.repeat != repeat:  # a round trip, only when the repeat changes
                 workers.set_repeat(repeat)
         action = tensordict.get("action", None)
