@@ -29,7 +29,11 @@ a stub that returns one recorded ``step`` output, so what is timed is the
 wrapper and TorchRL alone, in microseconds per step. Caches stay hot here: in a
 real loop the same code costs more (ManiSkill's step evicts it).
 
-Run: ``python benchmarks/bench_env.py [--rounds 31] [--steps 50] [--json out.json]``.
+``ManiSkillEnv`` runs ManiSkill under ``torch.inference_mode()`` on the CPU sim by default; the
+raw loop then runs under it too (the same torch work on both sides: the ratios are the
+wrapper's cost). ``--grad-mode`` (``inference_mode=False``) times both in grad mode.
+
+Run: ``python benchmarks/bench_env.py [--rounds 31] [--steps 50] [--grad-mode] [--json out.json]``.
 """
 
 from __future__ import annotations
@@ -42,6 +46,7 @@ import warnings
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import env_scenarios  # noqa: E402
 from common import ratio, report  # noqa: E402
 from env_scenarios import scenario_episodes, scenario_overhead, scenario_paired, scenario_step  # noqa: E402
 from machine import machine_line, save_json  # noqa: E402
@@ -68,12 +73,20 @@ def main(argv=None) -> int:
         "on a machine shared with other busy processes; everything here runs in this process",
     )
     p.add_argument("--threads", type=int, default=1, help="torch.set_num_threads (default 1)")
+    p.add_argument(
+        "--grad-mode",
+        action="store_true",
+        help="ManiSkillEnv(inference_mode=False): the wrapper alone, ManiSkill in grad mode as in the raw loop",
+    )
     p.add_argument("-v", "--verbose", action="store_true")
     args = p.parse_args(argv)
+    if args.grad_mode:
+        env_scenarios.ENV_KWARGS["inference_mode"] = False
 
     torch.set_num_threads(args.threads)
     print(
-        f"bench_env: PickCube-v1 state, CPU sim, scored on {args.clock} time, torch threads {torch.get_num_threads()}"
+        f"bench_env: PickCube-v1 state, CPU sim, scored on {args.clock} time, torch threads {torch.get_num_threads()}, "
+        f"ManiSkillEnv in {'grad' if args.grad_mode else 'inference'} mode"
     )
     print(machine_line())
     payload = {"args": vars(args)}

@@ -7,12 +7,30 @@ docstring describes each scenario, and its ``main`` prints the tables.
 
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 import torch
 
 from common import Contender, interleave, make_actions
 
 SEED = 0
+#: Extra ``ManiSkillEnv`` keywords for every scenario (``bench_env.py --grad-mode``: ``inference_mode=False``).
+ENV_KWARGS: dict = {}
+
+
+def make_env(**kwargs):
+    """The scenarios' ``ManiSkillEnv("PickCube-v1", obs_mode="state", ...)``."""
+    from maniskill_torchrl import ManiSkillEnv
+
+    return ManiSkillEnv("PickCube-v1", obs_mode="state", **kwargs, **ENV_KWARGS)
+
+
+def raw_mode(env):
+    """The grad mode the raw loop runs in: ``ManiSkillEnv``'s own (inference mode by default on the
+    CPU sim), so that both sides do the same torch work and only the wrapper's cost differs (and
+    the shared gym env's tensors stay usable by both)."""
+    return torch.inference_mode if env.inference_mode else contextlib.nullcontext
 
 
 def env_actions(env, n: int, seed: int = 0) -> list[torch.Tensor]:
@@ -47,20 +65,22 @@ def step_contenders(env, actions, state) -> list[Contender]:
 
 
 def scenario_step(steps: int, rounds: int, warmup: int, verbose: bool, clock: str = "cpu"):
-    from maniskill_torchrl import ManiSkillEnv
-
-    env = ManiSkillEnv("PickCube-v1", obs_mode="state", max_episode_steps=10 * steps + 100)
+    env = make_env(max_episode_steps=10 * steps + 100)
     raw = env._env  # the gym env ManiSkillEnv made: same instance, same physics work
     actions = env_actions(raw, steps)
     state = {}
 
+    mode = raw_mode(env)
+
     def setup_raw():
-        raw.reset(seed=SEED)
+        with mode():
+            raw.reset(seed=SEED)
 
     def run_raw():
         step = raw.step
-        for a in actions:
-            step(a)
+        with mode():
+            for a in actions:
+                step(a)
         return len(actions)
 
     results = interleave(
@@ -78,24 +98,25 @@ def scenario_step(steps: int, rounds: int, warmup: int, verbose: bool, clock: st
 
 
 def scenario_episodes(steps: int, rounds: int, warmup: int, verbose: bool, clock: str = "cpu"):
-    from maniskill_torchrl import ManiSkillEnv
-
-    env = ManiSkillEnv("PickCube-v1", obs_mode="state")  # 50-step episodes
+    env = make_env()  # 50-step episodes
     raw = env._env
+    mode = raw_mode(env)
     actions = env_actions(raw, steps, seed=1)
     state = {}
 
     def setup_raw():
         state["rng"] = np.random.RandomState(SEED)
         state["rng"].randint(2**31)  # ManiSkillEnv uses the seed itself first, then draws
-        raw.reset(seed=SEED)
+        with mode():
+            raw.reset(seed=SEED)
 
     def run_raw():
         step, reset, rng = raw.step, raw.reset, state["rng"]
-        for a in actions:
-            _, _, term, trunc, _ = step(a)
-            if (term | trunc).any():
-                reset(seed=int(rng.randint(2**31)))
+        with mode():
+            for a in actions:
+                _, _, term, trunc, _ = step(a)
+                if (term | trunc).any():
+                    reset(seed=int(rng.randint(2**31)))
         return len(actions)
 
     def setup_td():
@@ -144,9 +165,7 @@ class _ReplayStub:
 
 
 def scenario_overhead(steps: int, rounds: int, warmup: int, verbose: bool, clock: str = "cpu"):
-    from maniskill_torchrl import ManiSkillEnv
-
-    env = ManiSkillEnv("PickCube-v1", obs_mode="state", max_episode_steps=10 * steps + 100)
+    env = make_env(max_episode_steps=10 * steps + 100)
     real = env._env
     actions = env_actions(real, steps)
     real.reset(seed=SEED)
@@ -180,12 +199,11 @@ def scenario_paired(steps: int, rounds: int, warmup: int):
     import statistics
     import time
 
-    from maniskill_torchrl import ManiSkillEnv
-
-    env = ManiSkillEnv("PickCube-v1", obs_mode="state", max_episode_steps=10 * steps + 100)
+    env = make_env(max_episode_steps=10 * steps + 100)
     raw = env._env
     actions = env_actions(raw, steps, seed=2)
     names = ["raw", "ManiSkillEnv.step", "step_and_maybe_reset"]
+    mode = raw_mode(env)
     times = {n: [] for n in names}
     clock = time.process_time
     for r in range(warmup + rounds):
@@ -194,9 +212,10 @@ def scenario_paired(steps: int, rounds: int, warmup: int):
         for i, a in enumerate(actions):
             k = (i + r) % 3
             if k == 0:
-                t0 = clock()
-                raw.step(a)
-                dt = clock() - t0
+                with mode():
+                    t0 = clock()
+                    raw.step(a)
+                    dt = clock() - t0
             elif k == 1:
                 td_step.set("action", a)
                 t0 = clock()

@@ -90,16 +90,16 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
         info_keys (list of str, optional): the info entries to keep; defaults to
             every tensor entry of ``env.unwrapped.get_info()``.
         allow_done_after_reset (bool): passed to :class:`~torchrl.envs.EnvBase`.
-        inference_mode (bool, optional): run ManiSkill's ``step``, ``reset`` and ``render``
-            under :func:`torch.inference_mode`. A CPU-sim step is hundreds of small torch
-            ops, and inference mode skips autograd's bookkeeping for each: the same values
-            for less CPU. The tensors this env returns are copies made outside inference
-            mode, normal tensors. ManiSkill's own state tensors become inference tensors, so
-            calling the ManiSkill env's methods yourself, outside inference mode, after this
-            env stepped it can raise ``"Inplace update to inference tensor outside
-            InferenceMode"`` (PegInsertionSide-v1 does): make those calls under
-            ``torch.inference_mode()``, or pass ``inference_mode=False``. Default: on for a
-            CPU-sim env in this process, off on the GPU sim. A
+        inference_mode (bool): run ManiSkill's ``step``, ``reset`` and ``render`` under
+            :func:`torch.inference_mode` (default False here; :class:`ManiSkillEnv`, which
+            builds and owns its ManiSkill env, turns it on for the CPU sim). A CPU-sim step is
+            hundreds of small torch ops, and inference mode skips autograd's bookkeeping for
+            each: the same values for less CPU. The tensors this env returns are copies made
+            outside inference mode, normal tensors. ManiSkill's own state tensors become
+            inference tensors, so calling the ManiSkill env's methods yourself, outside
+            inference mode, after this env used it raises ``"Inplace update to inference
+            tensor outside InferenceMode"`` (PickCube-v1's ``reset`` does): make those calls
+            under ``torch.inference_mode()``. A
             :class:`~maniskill_torchrl.cpu_vector.CPUVectorEnv`'s workers always use it (only
             numpy copies leave them), whatever this says.
 
@@ -140,12 +140,10 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
         pixels_only: bool = False,
         info_keys: list[str] | None = None,
         allow_done_after_reset: bool = False,
-        inference_mode: bool | None = None,
+        inference_mode: bool = False,
         **kwargs: Any,
     ) -> None:
         base = checked_base_env(env, device, from_pixels=from_pixels, pixels_only=pixels_only)
-        if inference_mode is None:
-            inference_mode = not isinstance(base, CPUVectorEnv) and not base.gpu_sim_enabled
         # A CPUVectorEnv's workers run inference mode themselves and return numpy copies.
         self._inference = bool(inference_mode) and not isinstance(base, CPUVectorEnv)
         self._sim_mode = torch.inference_mode if self._inference else contextlib.nullcontext
@@ -182,6 +180,15 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
     def base_env(self) -> BaseEnv | CPUVectorEnv:
         """The ManiSkill ``BaseEnv`` (``env.unwrapped``), or the wrapped :class:`CPUVectorEnv`."""
         return self._env.unwrapped
+
+    @property
+    def inference_mode(self) -> bool:
+        """Whether this env calls ManiSkill under :func:`torch.inference_mode` in this process.
+
+        Code that shares the ManiSkill env (``env.base_env``) should make its own calls into it
+        under ``torch.inference_mode()`` too when this is True.
+        """
+        return self._inference
 
     @property
     def gpu_sim_enabled(self) -> bool:

@@ -448,13 +448,16 @@ def _inference_leaves(td: TensorDictBase) -> list:
     return [k for k, v in td.items(True, True) if v.is_inference()]
 
 
-@pytest.mark.parametrize("inference_mode", [None, False])
+@pytest.mark.parametrize("inference_mode", [None, True, False])
 def test_inference_mode_calls_and_values(inference_mode):
-    """On the CPU sim the wrapper calls ManiSkill under inference mode unless told not to;
-    the data are the raw loop's either way (the raw loop runs in grad mode)."""
+    """The wrapper calls ManiSkill under inference mode when asked (not by default: the caller
+    holds the gym env); the data are the raw loop's either way (the raw loop runs in grad mode)."""
     env_id, kwargs, _ = CONFIGS["pixels"]
     probe = _ModeProbe(make_gym_env(env_id, **kwargs))
-    env = ManiSkillWrapper(probe, from_pixels=True, inference_mode=inference_mode)
+    extra = {} if inference_mode is None else {"inference_mode": inference_mode}
+    env = ManiSkillWrapper(probe, from_pixels=True, **extra)
+    expected = bool(inference_mode)
+    assert env.inference_mode is expected
     raw = make_gym_env(env_id, **kwargs)
     try:
         n = SHORT + 2
@@ -467,7 +470,6 @@ def test_inference_mode_calls_and_values(inference_mode):
             assert_step_matches(td, rec, t)
             td = td_next
         env.render()
-        expected = inference_mode is None  # the default on the CPU sim
         assert {kind for kind, _ in probe.modes} == {"step", "reset", "render"}
         assert all(mode == expected for _, mode in probe.modes), probe.modes
     finally:
@@ -475,11 +477,12 @@ def test_inference_mode_calls_and_values(inference_mode):
 
 
 def test_inference_mode_outputs_are_normal_tensors(envs):
-    """What the env returns under its default inference mode can be modified in place (as
-    TorchRL's partial resets and users' transforms do): copies, not inference tensors."""
+    """ManiSkillEnv runs a CPU-sim env in inference mode by default; what it returns can be
+    modified in place (as TorchRL's partial resets and users' transforms do): copies, not
+    inference tensors."""
     for name in ("pick", "pick_sd", "pixels"):
         env = envs.torchrl(name)
-        assert env._inference
+        assert env.inference_mode
         td = env.reset(seed=3)
         assert not _inference_leaves(td), name
         td = env.rand_step(td)
