@@ -2,13 +2,14 @@
 
 Why ``CPUVectorEnv`` workers step ManiSkill under :func:`torch.inference_mode`: a ManiSkill
 step on the CPU sim is mostly Python and small torch ops (poses, controllers, ``evaluate``),
-each of which pays autograd's bookkeeping unless inference mode is on. One raw env
-(``gym.make(id, num_envs=1, obs_mode="state")``, random actions, seeded) is stepped in blocks
-of ``--block`` steps, the modes taking turns block by block (``grad``: torch's default, as in
-ManiSkill's own ``CPUGymWrapper`` workers; ``no_grad``; ``inference``), so a busy machine
-slows every mode alike. Reported: the thread's CPU time per step, median over blocks, and
-its ratio to ``grad``. The env is reset under inference mode, so that its tensors are
-inference tensors for every mode (what a worker holds).
+each of which pays autograd's bookkeeping unless inference mode is on. One raw env per
+mode (``gym.make(id, num_envs=1, obs_mode="state")``, the same seeded random actions), always
+used in its own mode, reset included (``grad``: torch's default, as in ManiSkill's own
+``CPUGymWrapper`` workers; ``no_grad``; ``inference``), is stepped in blocks of ``--block``
+steps, the modes taking turns block by block, so a busy machine slows every mode alike.
+Reported: the thread's CPU time per step, median over blocks, and its ratio to ``grad``. One
+env per mode because an env used under inference mode holds inference tensors, which a
+later call outside inference mode may not update (PickCube-v1's ``reset`` raises).
 
 Run: ``python benchmarks/bench_inference_mode.py [--env-id PickCube-v1] [--blocks 40] [--block 25]``.
 """
@@ -38,18 +39,21 @@ def main(argv: list[str] | None = None) -> int:
 
     logging.getLogger("mani_skill").setLevel(logging.ERROR)
     contexts = {"grad": contextlib.nullcontext, "no_grad": torch.no_grad, "inference": torch.inference_mode}
-    env = gym.make(args.env_id, num_envs=1, obs_mode="state", max_episode_steps=50)
-    with torch.inference_mode():
-        env.reset(seed=0)
-    low, high = torch.as_tensor(env.action_space.low), torch.as_tensor(env.action_space.high)
+    envs = {m: gym.make(args.env_id, num_envs=1, obs_mode="state", max_episode_steps=50) for m in contexts}
+    for mode, env in envs.items():
+        with contexts[mode]():
+            env.reset(seed=0)
+    space = envs["grad"].action_space
+    low, high = torch.as_tensor(space.low), torch.as_tensor(space.high)
     gen = torch.Generator().manual_seed(0)
     per_step: dict[str, list[float]] = {m: [] for m in contexts}
     for _ in range(args.blocks):
+        actions = [low + (high - low) * torch.rand(low.shape, generator=gen) for _ in range(args.block)]
         for mode, ctx in contexts.items():
+            env = envs[mode]
             t0 = time.thread_time()
             with ctx():
-                for _ in range(args.block):
-                    action = low + (high - low) * torch.rand(low.shape, generator=gen)
+                for action in actions:
                     _, _, terminated, truncated, _ = env.step(action)
                     if (terminated | truncated).any():
                         env.reset()
