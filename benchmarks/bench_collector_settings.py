@@ -38,8 +38,8 @@ from collection_pipelines import (  # noqa: E402
     ENV_ID,
     EPISODE,
     SEED,
-    _maniskill_kwargs,
     _worker_env,
+    batched_collector,
     collector_options,
     env_options,
     gym_vector_env,
@@ -58,19 +58,7 @@ def _gym(n: int, repeat: int):
 
 
 def _batched(n: int, repeat: int, options: list[str]):
-    from torchrl.collectors import Collector
-    from torchrl.envs import TransformedEnv
-
-    from maniskill_torchrl import ActionRepeat, ManiSkillEnv
-
-    opts = dict.fromkeys(options, "1")
-    env = ManiSkillEnv(ENV_ID, num_envs=n, **_maniskill_kwargs(), **env_options(opts))
-    if repeat > 1:
-        env = TransformedEnv(env, ActionRepeat(repeat))
-    env.set_seed(SEED)
-    policy, kwargs = collector_options(env, opts)
-    collector = Collector(env, policy=policy, frames_per_batch=EPISODE * n, total_frames=-1, **kwargs)
-    batches = iter(collector)
+    batches = iter(batched_collector(n, repeat, dict.fromkeys(options, "1")))
     return lambda: next(batches)
 
 

@@ -169,26 +169,31 @@ def child_gym(n: int, repeat: int, seconds: float, opts: dict) -> dict:
 
 
 def child_batched(n: int, repeat: int, seconds: float, opts: dict) -> dict:
-    from torchrl.collectors import Collector
-    from torchrl.envs import TransformedEnv
-
-    from maniskill_torchrl import ActionRepeat, ManiSkillEnv
-
     if "t1" in opts:
         import torch
 
         torch.set_num_threads(1)
     meter = _CPUMeter()
     try:
-        env = ManiSkillEnv(ENV_ID, num_envs=n, **_maniskill_kwargs(), **env_options(opts))
+        collector = batched_collector(n, repeat, opts)
     except Exception as err:  # noqa: BLE001 - reported as a skip, e.g. no batched CPU env yet
         return {"skipped": f"ManiSkillEnv({ENV_ID!r}, num_envs={n}) raised {type(err).__name__}: {err}"}
+    return _time_collector(collector, seconds, meter)
+
+
+def batched_collector(n: int, repeat: int, opts: dict):
+    """``Collector(ManiSkillEnv(id, num_envs=n) (-> ActionRepeat), ...)`` with the options' settings."""
+    from torchrl.collectors import Collector
+    from torchrl.envs import TransformedEnv
+
+    from maniskill_torchrl import ActionRepeat, ManiSkillEnv
+
+    env = ManiSkillEnv(ENV_ID, num_envs=n, **_maniskill_kwargs(), **env_options(opts))
     if repeat > 1:
         env = TransformedEnv(env, ActionRepeat(repeat))
     env.set_seed(SEED)
     policy, kwargs = collector_options(env, opts)
-    collector = Collector(env, policy=policy, frames_per_batch=EPISODE * n, total_frames=-1, **kwargs)
-    return _time_collector(collector, seconds, meter)
+    return Collector(env, policy=policy, frames_per_batch=EPISODE * n, total_frames=-1, **kwargs)
 
 
 def collector_options(env, opts: dict) -> tuple:
