@@ -16,7 +16,8 @@ in the gym workers with ``--repeat 2``):
   process, in grad mode);
 - ``parallel[:<options>]``: ``Collector(ParallelEnv(N, ManiSkillEnv + CPUUnbatch))`` with
   :class:`maniskill_torchrl.parallel.ParallelEnv` (``torchrl``: TorchRL's own, started with
-  ``"spawn"``), the options as above (``noinf`` in the workers' envs).
+  ``"spawn"``), the options as above (``noinf`` in the workers' envs), ``unb`` (the workers'
+  envs ``ManiSkillEnv(id, batch_size=[])``, no ``CPUUnbatch``).
 
 Run: ``python benchmarks/bench_collector_settings.py [--n 2] [--repeat 1] [--rounds 16]
 [--pipelines gym batched batched:rp+dev batched:rp+dev+notraj]``.

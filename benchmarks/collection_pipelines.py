@@ -45,19 +45,27 @@ def _gym_thunk(repeat: int):
 
 
 def env_options(opts: dict) -> dict:
-    """The ``ManiSkillEnv`` keywords that the options ask for: ``noinf`` (``inference_mode=False``)."""
-    return {"inference_mode": False} if "noinf" in opts else {}
+    """The ``ManiSkillEnv`` keywords that the options ask for: ``noinf`` (``inference_mode=False``),
+    ``unb`` (``batch_size=[]``: the workers' envs unbatched by ``ManiSkillEnv`` itself)."""
+    out: dict = {}
+    if "noinf" in opts:
+        out["inference_mode"] = False
+    if "unb" in opts:
+        out["batch_size"] = []
+    return out
 
 
 def _worker_env(repeat: int, **env_kwargs):
-    """One ParallelEnv worker: ManiSkillEnv -> CPUUnbatch (-> ActionRepeat)."""
+    """One ParallelEnv worker: ManiSkillEnv -> CPUUnbatch (-> ActionRepeat); without CPUUnbatch
+    when ``env_kwargs`` has ``batch_size=[]`` (the env is unbatched already)."""
     from torchrl.envs import Compose, TransformedEnv
 
     from maniskill_torchrl import ActionRepeat, CPUUnbatch, ManiSkillEnv
 
     _quiet()
-    transforms = [CPUUnbatch()] + ([ActionRepeat(repeat)] if repeat > 1 else [])
-    return TransformedEnv(ManiSkillEnv(ENV_ID, **_maniskill_kwargs(), **env_kwargs), Compose(*transforms))
+    env = ManiSkillEnv(ENV_ID, **_maniskill_kwargs(), **env_kwargs)
+    transforms = ([] if env.batch_size == () else [CPUUnbatch()]) + ([ActionRepeat(repeat)] if repeat > 1 else [])
+    return TransformedEnv(env, Compose(*transforms)) if transforms else env
 
 
 class _CPUMeter:

@@ -4,8 +4,8 @@
 it builds a :class:`torchrl.collectors.distributed.RayCollector`) starts ``K`` Ray actors,
 each running a TorchRL ``Collector`` over one env of this library:
 
-- ``--num-envs 1`` (default): ``ManiSkillEnv(env_id, obs_mode="state") -> CPUUnbatch ->
-  EpisodeMetrics``, one CPU-sim env in the actor process;
+- ``--num-envs 1`` (default): ``ManiSkillEnv(env_id, obs_mode="state", batch_size=[]) ->
+  EpisodeMetrics`` (unbatched), one CPU-sim env in the actor process;
 - ``--num-envs N``: ``ManiSkillEnv(env_id, num_envs=N) -> EpisodeMetrics``, one batched env
   (on the CPU sim, N worker processes under the actor: the fast CPU path).
 
@@ -63,7 +63,7 @@ def make_env(
     kwargs = {"obs_mode": "state"}
     if max_episode_steps is not None:
         kwargs["max_episode_steps"] = max_episode_steps
-    # num_envs=None: ManiSkillEnv -> CPUUnbatch -> EpisodeMetrics; N: ManiSkillEnv(num_envs=N) -> EpisodeMetrics
+    # num_envs=None: ManiSkillEnv(batch_size=[]) -> EpisodeMetrics; N: ManiSkillEnv(num_envs=N) -> EpisodeMetrics
     env = make_pipeline(env_id, num_envs=None if num_envs == 1 else num_envs, **kwargs)
     if crash_after is not None:
         env.append_transform(_CrashAfter(crash_after))
@@ -186,7 +186,7 @@ def main(argv: list[str] | None = None) -> int:
         "--num-envs",
         type=int,
         default=1,
-        help="envs per remote collector: 1 = ManiSkillEnv -> CPUUnbatch; N = ManiSkillEnv(num_envs=N)",
+        help="envs per remote collector: 1 = ManiSkillEnv(batch_size=[]); N = ManiSkillEnv(num_envs=N)",
     )
     p.add_argument("--frames-per-batch", type=int, default=200, help="over all collectors (default 200)")
     p.add_argument("--batches", type=int, default=4)
@@ -241,7 +241,7 @@ def main(argv: list[str] | None = None) -> int:
         collector.update_policy_weights_()  # version 0 to every remote collector
         print(
             f"{args.collectors} remote collectors of {args.env_id} "
-            f"({'ManiSkillEnv -> CPUUnbatch' if args.num_envs == 1 else f'ManiSkillEnv(num_envs={args.num_envs})'}"
+            f"({'ManiSkillEnv(batch_size=[])' if args.num_envs == 1 else f'ManiSkillEnv(num_envs={args.num_envs})'}"
             f" -> EpisodeMetrics), start-up {time.perf_counter() - t0:.1f} s"
         )
         frames = episodes = successes = 0

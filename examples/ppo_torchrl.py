@@ -9,7 +9,7 @@ Two configurations:
 - **CPU**: the same call, ``ManiSkillEnv(env_id, num_envs=4)``, on the CPU
   sim: one batched TorchRL env over 4 worker processes (one CPU-sim env
   each), the fastest CPU path (``benchmarks/RESULTS.md``). ``--vec parallel``
-  / ``--vec serial`` stack single ``ManiSkillEnv -> CPUUnbatch`` envs in a
+  / ``--vec serial`` stack single unbatched ``ManiSkillEnv(batch_size=[])`` envs in a
   ``ParallelEnv`` / ``SerialEnv`` instead.
   ``--smoke`` is a few hundred frames through 2 batched CPU envs that checks
   the whole loop end to end in well under a minute.
@@ -72,7 +72,7 @@ warnings.filterwarnings("ignore", message=".*precision lowered by casting.*")
 
 # ----------------------------------------------------------------------------- envs
 def make_cpu_env(env_id: str, repeat: int, env_kwargs: dict[str, Any]) -> EnvBase:
-    """One CPU-sim worker: ``ManiSkillEnv -> CPUUnbatch -> ActionRepeat -> EpisodeMetrics`` (batch ``[]``).
+    """One CPU-sim worker: ``ManiSkillEnv(batch_size=[]) -> ActionRepeat -> EpisodeMetrics`` (batch ``[]``).
 
     Module-level so that ``functools.partial`` of it pickles into ``ParallelEnv`` workers.
     ActionRepeat sits in the worker (no inter-process round trip per inner step);
@@ -472,7 +472,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         choices=("batched", "parallel", "serial"),
         default="batched",
         help="batched: ManiSkillEnv(num_envs=--num-envs) (one GPU simulator, or one CPU worker "
-        "process per env); parallel / serial: a ParallelEnv / SerialEnv of CPUUnbatch-ed "
+        "process per env); parallel / serial: a ParallelEnv / SerialEnv of unbatched "
         "CPU envs",
     )
     p.add_argument("--num-steps", type=int, default=None, help="rollout steps per env per iteration")

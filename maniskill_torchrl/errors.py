@@ -15,7 +15,14 @@ import torch
 from maniskill_torchrl._maniskill import maniskill_base_env
 from maniskill_torchrl.cpu_vector import CPUVectorEnv
 
-__all__ = ["checked_base_env", "check_info_keys", "MissingActionError", "action_error", "ClosedEnv"]
+__all__ = [
+    "checked_base_env",
+    "checked_batch_size",
+    "check_info_keys",
+    "MissingActionError",
+    "action_error",
+    "ClosedEnv",
+]
 
 
 def checked_base_env(env: Any, device: Any, *, from_pixels: bool, pixels_only: bool) -> Any:
@@ -47,6 +54,23 @@ def checked_base_env(env: Any, device: Any, *, from_pixels: bool, pixels_only: b
             f"from_pixels=True needs an env made with render_mode='rgb_array' (got render_mode={base.render_mode!r})."
         )
     return base
+
+
+def checked_batch_size(batch_size: Any, num_envs: int) -> torch.Size:
+    """The env's batch size: ``[num_envs]`` (``batch_size=None``), or ``[]`` for one env asked unbatched."""
+    if batch_size is None:
+        return torch.Size([num_envs])
+    try:
+        size = torch.Size(batch_size)
+    except TypeError:
+        size = None
+    if size == torch.Size([num_envs]) or (size == torch.Size([]) and num_envs == 1):
+        return size
+    raise ValueError(
+        f"batch_size={batch_size!r} does not fit a ManiSkill env with num_envs={num_envs}: leave it out "
+        f"(batch_size [{num_envs}], ManiSkill's num_envs), or pass batch_size=[] with num_envs=1 for one "
+        "unbatched env (batch_size [], what ParallelEnv / SerialEnv stack)."
+    )
 
 
 def check_info_keys(info_keys: list[str], infos: Mapping[str, Any], base: Any) -> None:
@@ -86,7 +110,7 @@ def action_error(
         return ValueError(f"ManiSkill action {key[1]!r} of shape {tuple(action.shape)}, expected {tuple(expected)}.")
     return ValueError(
         f"ManiSkill action of shape {tuple(action.shape)}, expected "
-        f"{tuple(expected)} ([num_envs, *single_action_space.shape])."
+        f"{tuple(expected)} ([*env.batch_size, *single_action_space.shape])."
     )
 
 

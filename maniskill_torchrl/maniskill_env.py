@@ -3,6 +3,7 @@ worker processes for several CPU-sim envs) and wraps it as a TorchRL env."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import gymnasium as gym
@@ -11,6 +12,7 @@ from torchrl.data.utils import DEVICE_TYPING
 
 from maniskill_torchrl._maniskill import enable_physx_gpu, registered_env_ids, similar_env_ids
 from maniskill_torchrl.cpu_vector import CPUVectorEnv
+from maniskill_torchrl.errors import checked_batch_size
 from maniskill_torchrl.maniskill_wrapper import ManiSkillWrapper
 
 __all__ = ["ManiSkillEnv"]
@@ -38,6 +40,11 @@ class ManiSkillEnv(ManiSkillWrapper):
             ManiSkill step in grad mode), off on the GPU sim; ``num_envs > 1`` CPU workers
             always use it. Pass False if your code calls ``env.base_env``'s methods itself
             outside inference mode.
+        batch_size (list of int, optional): ``[num_envs]`` by default. ``[]`` with ``num_envs=1``
+            makes one unbatched env, what :class:`~torchrl.envs.ParallelEnv` and
+            :class:`~torchrl.envs.SerialEnv` stack: the same specs and entries as
+            ``TransformedEnv(ManiSkillEnv(env_id), CPUUnbatch())``, without a transformed env's
+            step on top of each ManiSkill step (see :class:`ManiSkillWrapper`).
         pixels_only, info_keys, device, allow_done_after_reset: as in
             :class:`ManiSkillWrapper`.
         **maniskill_kwargs: passed to ``gym.make`` (``obs_mode``,
@@ -65,6 +72,7 @@ class ManiSkillEnv(ManiSkillWrapper):
         info_keys: list[str] | None = None,
         allow_done_after_reset: bool = False,
         inference_mode: bool | None = None,
+        batch_size: Sequence[int] | None = None,
         **maniskill_kwargs: Any,
     ) -> None:
         if env_id not in registered_env_ids():
@@ -76,6 +84,7 @@ class ManiSkillEnv(ManiSkillWrapper):
             )
         if not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive int, got {num_envs!r}.")
+        checked_batch_size(batch_size, num_envs)  # before any process or sim is started
         if from_pixels:
             maniskill_kwargs.setdefault("render_mode", "rgb_array")
         self._env_id = env_id
@@ -105,6 +114,7 @@ class ManiSkillEnv(ManiSkillWrapper):
             info_keys=info_keys,
             allow_done_after_reset=allow_done_after_reset,
             inference_mode=inference_mode,
+            batch_size=batch_size,
         )
 
     @property

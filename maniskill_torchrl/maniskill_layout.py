@@ -10,7 +10,7 @@ object: its methods stay methods of the wrapper, so a step makes no extra call t
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import gymnasium as gym
@@ -31,12 +31,24 @@ class ManiSkillLayout:
     Reads the host's ``_env``, ``_inference``, ``batch_size``, ``device``, ``action_keys`` and
     ``render()``; sets the specs and, for ``_step``'s action check, ``_action_names`` (the
     agents of a Dict action space, else None) and ``_action_shapes``.
+
+    An unbatched env (``batch_size=[]``, one ManiSkill env) has the specs of the batch-``[1]``
+    env with that dim squeezed out, as :class:`~maniskill_torchrl.transforms.CPUUnbatch` gives
+    them, and its entries drop it as they are built (no transform, no second pass).
     """
 
-    def _init_layout(self, *, from_pixels: bool, pixels_only: bool, info_keys: list[str] | None) -> None:
+    def _init_layout(
+        self, *, from_pixels: bool, pixels_only: bool, info_keys: list[str] | None, unbatched: bool
+    ) -> None:
         self._from_pixels = bool(from_pixels)
         self._pixels_only = bool(pixels_only)
         self._requested_info_keys = info_keys
+        self._unbatched = unbatched
+        # How one ManiSkill tensor becomes an entry. Infos are always cloned: they may alias
+        # ManiSkill's buffers (elapsed_steps is updated in place). Observations are cloned when
+        # made under inference mode, so that the user gets normal tensors.
+        self._obs_leaf = _LEAVES[unbatched, self._inference]
+        self._info_leaf = _LEAVES[unbatched, True]
 
     def _make_specs(self, env: Any) -> None:
         base = env.unwrapped
@@ -49,11 +61,14 @@ class ManiSkillLayout:
             obs_space,
             act_space,
             self._infos(base),
-            self.batch_size,
+            torch.Size([base.num_envs]),
             self.device,
             frame_shape=frame_shape,
             pixels_only=self._pixels_only,
         )
+        if self._unbatched:
+            fields = ("observation", "action", "reward", "done")
+            specs = specs._replace(**{f: getattr(specs, f).squeeze(0) for f in fields})
         self._obs_is_dict = isinstance(obs_space, gym.spaces.Dict)
         self._info_map: list[tuple[str, str]] = specs.info_map
         action_spec = specs.action["action"]
@@ -84,19 +99,19 @@ class ManiSkillLayout:
         return frame
 
     def _to_tensordict(self, obs: Any, info: Mapping[str, Any]) -> dict:
+        leaf = self._obs_leaf
         if self._pixels_only:
             source = {}
-        elif self._inference:  # made under inference mode: copies, normal tensors for the user
-            source = _copied(obs) if self._obs_is_dict else {"observation": obs.clone()}
         elif self._obs_is_dict:
-            source = dict(obs)
+            source = dict(obs) if leaf is None else _mapped(obs, leaf)
         else:
-            source = {"observation": obs}
-        # Info tensors may alias ManiSkill's buffers (elapsed_steps is updated in place): clone them.
+            source = {"observation": obs if leaf is None else leaf(obs)}
+        leaf = self._info_leaf
         for key, td_key in self._info_map:
-            source[td_key] = info[key].clone()
+            source[td_key] = leaf(info[key])
         if self._from_pixels:
-            source["pixels"] = self._render_batched(self.render())
+            frame = self._render_batched(self.render())
+            source["pixels"] = frame[0] if self._unbatched else frame
         return source
 
     def _action_error(self, tensordict: TensorDictBase, key: str | tuple[str, str], action: Any) -> Exception:
@@ -105,9 +120,30 @@ class ManiSkillLayout:
         return action_error(type(self).__name__, key, action, expected, keys, self.action_keys)
 
 
-def _copied(obs: Mapping[str, Any]) -> dict:
-    """A nested observation dict with every tensor cloned (other values as they are)."""
+def _mapped(obs: Mapping[str, Any], leaf: Callable[[torch.Tensor], torch.Tensor]) -> dict:
+    """A nested observation dict with ``leaf`` applied to every tensor (other values as they are)."""
     return {
-        k: v.clone() if isinstance(v, torch.Tensor) else _copied(v) if isinstance(v, Mapping) else v
+        k: leaf(v) if isinstance(v, torch.Tensor) else _mapped(v, leaf) if isinstance(v, Mapping) else v
         for k, v in obs.items()
     }
+
+
+def _clone(x: torch.Tensor) -> torch.Tensor:
+    return x.clone()
+
+
+def _unbatch(x: torch.Tensor) -> torch.Tensor:
+    return x[0]
+
+
+def _unbatch_clone(x: torch.Tensor) -> torch.Tensor:
+    return x[0].clone()
+
+
+# (unbatched, copy) -> what a ManiSkill tensor goes through (None: nothing).
+_LEAVES: dict[tuple[bool, bool], Callable[[torch.Tensor], torch.Tensor] | None] = {
+    (False, False): None,
+    (False, True): _clone,
+    (True, False): _unbatch,
+    (True, True): _unbatch_clone,
+}

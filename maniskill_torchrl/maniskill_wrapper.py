@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib.util
+from collections.abc import Sequence
 from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
@@ -21,7 +22,7 @@ from torchrl.data.utils import DEVICE_TYPING
 
 from maniskill_torchrl._private import EnvWrapper, classproperty, new_tensordict
 from maniskill_torchrl.cpu_vector import CPUVectorEnv
-from maniskill_torchrl.errors import ClosedEnv, checked_base_env
+from maniskill_torchrl.errors import ClosedEnv, checked_base_env, checked_batch_size
 from maniskill_torchrl.maniskill_layout import ManiSkillLayout
 from maniskill_torchrl.seeding import ResetSeeds
 
@@ -102,6 +103,15 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
             under ``torch.inference_mode()``. A
             :class:`~maniskill_torchrl.cpu_vector.CPUVectorEnv`'s workers always use it (only
             numpy copies leave them), whatever this says.
+        batch_size (list of int, optional): ``[num_envs]`` (the default), or ``[]`` for one
+            ManiSkill env (``num_envs=1``) as an unbatched TorchRL env: specs and entries without
+            the env dim (observations ``[*obs]``, infos ``[]``, ``reward`` and done flags ``[1]``,
+            ``"action"`` ``[*single_action_space.shape]``), what
+            :class:`~torchrl.envs.ParallelEnv` / :class:`~torchrl.envs.SerialEnv` stack. The
+            same values as :class:`~maniskill_torchrl.transforms.CPUUnbatch` on the batch-``[1]``
+            env, squeezed while each step's TensorDict is built instead of by a transform:
+            a ``TransformedEnv`` costs each step more CPU than this env's own step does.
+            ``render()`` still returns ManiSkill's batched frames.
 
     Examples:
         >>> import gymnasium as gym
@@ -141,9 +151,11 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
         info_keys: list[str] | None = None,
         allow_done_after_reset: bool = False,
         inference_mode: bool = False,
+        batch_size: Sequence[int] | None = None,
         **kwargs: Any,
     ) -> None:
         base = checked_base_env(env, device, from_pixels=from_pixels, pixels_only=pixels_only)
+        batch_size = checked_batch_size(batch_size, base.num_envs)
         # A CPUVectorEnv's workers run inference mode themselves and return numpy copies.
         self._inference = bool(inference_mode) and not isinstance(base, CPUVectorEnv)
         self._sim_mode = torch.inference_mode if self._inference else contextlib.nullcontext
@@ -153,12 +165,14 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
         self._workers = base if env is base and isinstance(base, CPUVectorEnv) else None
         self._plain_repeat = base.repeat if self._workers is not None else 1
         self._next_repeat = 0  # 0: no request for the next step
-        self._init_layout(from_pixels=from_pixels, pixels_only=pixels_only, info_keys=info_keys)
+        self._init_layout(
+            from_pixels=from_pixels, pixels_only=pixels_only, info_keys=info_keys, unbatched=not batch_size
+        )
         self._seeds = ResetSeeds()
         super().__init__(
             env=env,
             device=torch.device(base.device),
-            batch_size=torch.Size([base.num_envs]),
+            batch_size=batch_size,
             allow_done_after_reset=allow_done_after_reset,
             **kwargs,
         )
@@ -224,11 +238,15 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
         if self._action_names is None:
             if action.shape != self._action_shapes:
                 raise self._action_error(tensordict, "action", action)
+            if self._unbatched:  # ManiSkill's own batch of one
+                action = action.unsqueeze(0)
         else:
             action = {k: action.get(k, None) for k in self._action_names}
             for k, a in action.items():
                 if a is None or a.shape != self._action_shapes[k]:
                     raise self._action_error(tensordict, ("action", k), a)
+            if self._unbatched:
+                action = {k: a.unsqueeze(0) for k, a in action.items()}
         with self._sim_mode():
             obs, reward, terminated, truncated, info = self._env.step(action)
         source = self._to_tensordict(obs, info)
@@ -237,7 +255,13 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
         # ManiSkill gives [B] tensors: unsqueeze is the cheapest way to [B, 1] (view(shape) costs
         # twice as much on the CPU sim, where each op counts); other shapes go through view.
         done = torch.logical_or(terminated, truncated)
-        if reward.ndim == terminated.ndim == truncated.ndim == 1:
+        if self._unbatched and reward.shape == terminated.shape == truncated.shape == (1,):
+            # ManiSkill's [1] flags are already the unbatched env's [1] entries.
+            source["reward"] = reward
+            source["terminated"] = terminated
+            source["truncated"] = truncated
+            source["done"] = done
+        elif reward.ndim == terminated.ndim == truncated.ndim == 1 and not self._unbatched:
             source["reward"] = reward.unsqueeze(-1)
             source["terminated"] = terminated.unsqueeze(-1)
             source["truncated"] = truncated.unsqueeze(-1)
@@ -320,6 +344,7 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
             return f"{self._env.name} (closed)"
         name = self._env_name(self._env)
         return (
-            f"{type(self).__name__}(env={name}, num_envs={self.batch_size[0]}, "
+            f"{type(self).__name__}(env={name}, num_envs={self._env.unwrapped.num_envs}, "
+            f"batch_size={list(self.batch_size)}, "
             f"device={self.device}, gpu_sim={self.gpu_sim_enabled})"
         )

@@ -2,7 +2,7 @@
 
 The CLI demo, the examples (PPO training and evaluation, Ray) and the README build
 their envs with :func:`make_env`, so the order of the transforms is written once:
-``ManiSkillEnv [-> CPUUnbatch] [-> IgnoreTerminations] [-> ActionRepeat] [-> EpisodeMetrics]``.
+``ManiSkillEnv [-> IgnoreTerminations] [-> ActionRepeat] [-> EpisodeMetrics]``.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from torchrl.envs import Compose, TransformedEnv
 
 from maniskill_torchrl.env import ManiSkillEnv
 from maniskill_torchrl.masked_merge import check_repeat
-from maniskill_torchrl.transforms import ActionRepeat, CPUUnbatch, EpisodeMetrics, IgnoreTerminations
+from maniskill_torchrl.transforms import ActionRepeat, EpisodeMetrics, IgnoreTerminations
 
 __all__ = ["make_env"]
 
@@ -29,16 +29,20 @@ def make_env(
 ) -> TransformedEnv:
     """A ManiSkill task with the library's transforms, in their one sensible order.
 
-    - ``num_envs=None``: one CPU-sim env made unbatched (``CPUUnbatch``, batch ``[]``):
-      the worker of a ``ParallelEnv`` / ``SerialEnv``, a ``MultiSyncCollector`` or a Ray
-      collector. ``functools.partial(make_env, env_id, ...)`` pickles into worker processes.
+    - ``num_envs=None``: one unbatched CPU-sim env (``ManiSkillEnv(env_id, batch_size=[])``,
+      batch ``[]``): the worker of a ``ParallelEnv`` / ``SerialEnv``, a ``MultiSyncCollector``
+      or a Ray collector. ``functools.partial(make_env, env_id, ...)`` pickles into worker
+      processes.
     - ``num_envs=N``: ``ManiSkillEnv(env_id, num_envs=N)``, batch ``[N]`` (one GPU simulator
       with ``sim_backend="gpu"``, one worker process per env on the CPU sim).
 
     Then ``IgnoreTerminations`` (episodes run to the time limit, as ManiSkill's evaluation
     does), ``ActionRepeat(repeat)`` where ``repeat > 1`` (inside the worker: no round trip
     per inner step) and ``EpisodeMetrics`` last, so that episode lengths count agent steps
-    and repeated rewards arrive summed.
+    and repeated rewards arrive summed. The result is always a ``TransformedEnv``, possibly
+    with no transform (``env.transform`` and ``env.append_transform`` work alike); for a bare
+    worker env, whose steps skip a transformed env's bookkeeping, use
+    ``ManiSkillEnv(env_id, batch_size=[])`` directly.
 
     Args:
         env_id: a registered ManiSkill task, e.g. ``"PickCube-v1"``.
@@ -54,15 +58,14 @@ def make_env(
         >>> from maniskill_torchrl.pipeline import make_env
         >>> env = make_env("PickCube-v1", repeat=2, obs_mode="state")
         >>> [type(t).__name__ for t in env.transform], env.batch_size
-        (['CPUUnbatch', 'ActionRepeat', 'EpisodeMetrics'], torch.Size([]))
+        (['ActionRepeat', 'EpisodeMetrics'], torch.Size([]))
         >>> env.close()
     """
     repeat = check_repeat(repeat)  # before any env is built
     transforms: list = []
     if num_envs is None:
         maniskill_kwargs.setdefault("sim_backend", "physx_cpu")
-        base = ManiSkillEnv(env_id, **maniskill_kwargs)
-        transforms.append(CPUUnbatch())
+        base = ManiSkillEnv(env_id, batch_size=[], **maniskill_kwargs)
     else:
         base = ManiSkillEnv(env_id, num_envs=num_envs, **maniskill_kwargs)
     if ignore_terminations:

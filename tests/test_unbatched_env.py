@@ -1,0 +1,194 @@
+"""``ManiSkillEnv(env_id, batch_size=[])``: one ManiSkill env as an unbatched TorchRL env.
+
+Oracles: ``TransformedEnv(ManiSkillEnv(env_id), CPUUnbatch())`` (itself checked against ManiSkill
+in ``test_cpu_unbatch.py``) and a raw ManiSkill loop. Every comparison seeds every reset.
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import pytest
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.envs import SerialEnv, TransformedEnv
+from torchrl.envs.utils import check_env_specs
+
+from helpers import close_envs, make_gym_env, random_actions
+from maniskill_torchrl import ActionRepeat, CPUUnbatch, ManiSkillEnv, ManiSkillWrapper
+
+MAX_STEPS = 5  # short episodes: every rollout below crosses an automatic reset
+
+
+def _pair(env_id: str, **kwargs) -> tuple[ManiSkillEnv, TransformedEnv]:
+    """(the unbatched env, the CPUUnbatch oracle), two ManiSkill envs made alike."""
+    return (
+        ManiSkillEnv(env_id, batch_size=[], **kwargs),
+        TransformedEnv(ManiSkillEnv(env_id, **kwargs), CPUUnbatch()),
+    )
+
+
+def _as_action(a) -> torch.Tensor | TensorDict:
+    return TensorDict(a, batch_size=[]) if isinstance(a, dict) else a
+
+
+def _run(env, actions: list, seed: int) -> TensorDictBase:
+    """Seeded reset, then ``step_and_maybe_reset`` with ``actions``: the stacked steps."""
+    td = env.reset(seed=seed)
+    steps = []
+    for a in actions:
+        td["action"] = _as_action(a)
+        out, td = env.step_and_maybe_reset(td)
+        steps.append(out.clone())
+    return torch.stack(steps)
+
+
+def _assert_equal_tds(got: TensorDictBase, want: TensorDictBase) -> None:
+    got_keys = set(got.keys(True, True))
+    assert got_keys == set(want.keys(True, True))
+    assert len(got_keys) > 5  # observations, action, flags, infos: never an empty comparison
+    assert got.batch_size == want.batch_size
+    for key in got_keys:
+        g, w = got[key], want[key]
+        assert g.dtype == w.dtype and g.shape == w.shape, key
+        assert torch.equal(g, w), key
+
+
+@pytest.mark.parametrize(
+    ("env_id", "obs_mode", "inference_mode"),
+    [
+        ("PickCube-v1", "state", None),
+        ("PickCube-v1", "state", False),
+        ("PickCube-v1", "state_dict", None),
+        ("TwoRobotPickCube-v1", "state_dict", None),  # a Dict action space
+    ],
+)
+def test_same_specs_and_steps_as_cpu_unbatch(env_id: str, obs_mode: str, inference_mode: bool | None) -> None:
+    env, oracle = _pair(env_id, obs_mode=obs_mode, max_episode_steps=MAX_STEPS, inference_mode=inference_mode)
+    try:
+        assert env.batch_size == torch.Size([]) and env.inference_mode == oracle.base_env.inference_mode
+        assert env.output_spec == oracle.output_spec
+        assert env.input_spec == oracle.input_spec
+        space = env.base_env.single_action_space
+        actions = random_actions(space, 2 * MAX_STEPS + 2, seed=3)
+        got, want = _run(env, actions, seed=9), _run(oracle, actions, seed=9)
+        assert got["next", "done"].sum() == 2  # two episodes ended, two automatic resets
+        _assert_equal_tds(got, want)
+        check_env_specs(env, seed=0)
+    finally:
+        close_envs([env, oracle])
+
+
+def test_same_as_raw_maniskill_loop() -> None:
+    env = ManiSkillEnv("PickCube-v1", batch_size=[], obs_mode="state", max_episode_steps=MAX_STEPS)
+    raw = make_gym_env("PickCube-v1", obs_mode="state", max_episode_steps=MAX_STEPS)
+    try:
+        actions = random_actions(raw.unwrapped.single_action_space, MAX_STEPS, seed=1)
+        td = env.reset(seed=4)
+        obs, _ = raw.reset(seed=4)
+        assert torch.equal(td["observation"], obs[0])
+        for a in actions:
+            td = env.step(td.set("action", a))
+            obs, reward, terminated, truncated, info = raw.step(a.unsqueeze(0))
+            nxt = td["next"]
+            assert torch.equal(nxt["observation"], obs[0])
+            assert torch.equal(nxt["reward"], reward) and nxt["reward"].shape == (1,)
+            assert torch.equal(nxt["terminated"], terminated) and torch.equal(nxt["truncated"], truncated)
+            assert torch.equal(nxt["done"], terminated | truncated)
+            assert torch.equal(nxt["success"], info["success"][0]) and nxt["success"].shape == ()
+            assert torch.equal(nxt["elapsed_steps"], info["elapsed_steps"][0])
+            td = td["next"].clone()
+        assert bool(nxt["truncated"])  # the time limit was reached
+    finally:
+        close_envs([env, raw])
+
+
+def test_pixels_and_rgb_observations() -> None:
+    env, oracle = _pair("PickCube-v1", obs_mode="rgb", from_pixels=True, max_episode_steps=MAX_STEPS)
+    try:
+        assert env.output_spec == oracle.output_spec
+        assert env.observation_spec["pixels"].shape[-1] == 3 and env.observation_spec["pixels"].ndim == 3
+        actions = random_actions(env.base_env.single_action_space, 2, seed=2)
+        got, want = _run(env, actions, seed=6), _run(oracle, actions, seed=6)
+        assert got["next", "pixels"].dtype == torch.uint8 and got["next", "pixels"].any()
+        _assert_equal_tds(got, want)
+    finally:
+        close_envs([env, oracle])
+
+
+def test_reset_mask() -> None:
+    env = ManiSkillEnv("PickCube-v1", batch_size=[], obs_mode="state")
+    try:
+        td = env.reset(TensorDict(_reset=torch.tensor([True])), seed=0)
+        assert td["observation"].shape == (42,) and td["done"].shape == (1,)
+        td = env.rand_step(td)
+        # A no-op reset ("_reset" False) changes nothing and keeps the unbatched shapes.
+        before = td["next"].clone()
+        out = env.reset(td["next"].clone().set("_reset", torch.tensor([False])))
+        assert out.batch_size == () and out["done"].shape == (1,)
+        assert torch.equal(out["observation"], before["observation"])
+    finally:
+        env.close()
+
+
+def test_serial_env_with_action_repeat_equals_cpu_unbatch_workers() -> None:
+    """Stacked by SerialEnv under ActionRepeat (partial steps through "_step"): same data."""
+
+    def stack(unbatched: bool):
+        def make():
+            if unbatched:
+                return ManiSkillEnv("PickCube-v1", batch_size=[], obs_mode="state", max_episode_steps=MAX_STEPS)
+            return TransformedEnv(
+                ManiSkillEnv("PickCube-v1", obs_mode="state", max_episode_steps=MAX_STEPS), CPUUnbatch()
+            )
+
+        return TransformedEnv(SerialEnv(2, make), ActionRepeat(2))
+
+    env, oracle = stack(True), stack(False)
+    try:
+        assert env.batch_size == oracle.batch_size == torch.Size([2])
+        g = torch.Generator().manual_seed(0)
+        actions = [torch.rand(2, 8, generator=g) * 2 - 1 for _ in range(MAX_STEPS)]
+        got, want = _run(env, actions, seed=3), _run(oracle, actions, seed=3)
+        assert got["next", "done"].any()
+        _assert_equal_tds(got, want)
+    finally:
+        close_envs([env, oracle])
+
+
+def test_wrapper_and_default_batch_size() -> None:
+    env = ManiSkillWrapper(make_gym_env("PickCube-v1", obs_mode="state"), batch_size=())
+    batched = ManiSkillEnv("PickCube-v1", obs_mode="state", batch_size=[1])  # the default, spelt out
+    try:
+        assert env.batch_size == () and env.action_spec.shape == (8,)
+        assert batched.batch_size == (1,) and batched.action_spec.shape == (1, 8)
+        assert "batch_size=[]" in repr(env)
+    finally:
+        close_envs([env, batched])
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"num_envs": 2, "batch_size": []}, r"batch_size=\[\] does not fit .* num_envs=2.*with num_envs=1"),
+        ({"batch_size": [3]}, r"batch_size=\[3\] does not fit .* num_envs=1"),
+        ({"batch_size": 1}, r"batch_size=1 does not fit"),
+    ],
+)
+def test_bad_batch_size_raises_before_building(kwargs: dict, match: str, monkeypatch) -> None:
+    def no_env(*args, **kw):
+        raise AssertionError("an env was built before the batch size was checked")
+
+    monkeypatch.setattr(gym, "make", no_env)
+    monkeypatch.setattr("maniskill_torchrl.maniskill_env.CPUVectorEnv", no_env)
+    with pytest.raises(ValueError, match=match):
+        ManiSkillEnv("PickCube-v1", obs_mode="state", **kwargs)
+
+
+def test_wrong_action_shape_says_what_is_expected() -> None:
+    env = ManiSkillEnv("PickCube-v1", batch_size=[], obs_mode="state")
+    try:
+        td = env.reset(seed=0)
+        with pytest.raises(ValueError, match=r"shape \(1, 8\), expected \(8,\)"):
+            env.step(td.set("action", torch.zeros(1, 8)))
+    finally:
+        env.close()
