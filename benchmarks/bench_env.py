@@ -24,6 +24,10 @@ Scenario "episodes" (PickCube-v1's 50-step limit: a reset every 50 steps):
   terminated or truncated (seeds drawn as ManiSkillEnv draws them);
 - ``step_and_maybe_reset``: as above, its resets seeded by ``env.set_seed``.
 
+Scenario "worker" (no physics, stubs as in "overhead"): what each worker of a ``ParallelEnv`` of
+singles runs per step, ``step_and_maybe_reset``, on the batch-``[1]`` env, on
+``TransformedEnv(env, CPUUnbatch())`` and on ``ManiSkillEnv(..., batch_size=[])``.
+
 Scenario "overhead" (no physics): the gym env under ManiSkillEnv is replaced by
 a stub that returns one recorded ``step`` output, so what is timed is the
 wrapper and TorchRL alone, in microseconds per step. Caches stay hot here: in a
@@ -48,7 +52,13 @@ import torch
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import env_scenarios  # noqa: E402
 from common import ratio, report  # noqa: E402
-from env_scenarios import scenario_episodes, scenario_overhead, scenario_paired, scenario_step  # noqa: E402
+from env_scenarios import (  # noqa: E402
+    scenario_episodes,
+    scenario_overhead,
+    scenario_paired,
+    scenario_step,
+    scenario_worker,
+)
 from machine import machine_line, save_json  # noqa: E402
 
 warnings.filterwarnings("ignore")
@@ -124,6 +134,11 @@ def main(argv=None) -> int:
     print(f"\nscenario: overhead (stub env, no physics, hot caches; 500 steps x {n_ov_rounds} rounds)")
     print(report(res_ov, baseline="stub", difference=True))
     payload["overhead"] = {k: v.as_dict() for k, v in res_ov.items()}
+
+    res_w = scenario_worker(500, n_ov_rounds, args.warmup, args.verbose, args.clock)
+    print(f"\nscenario: worker (a ParallelEnv worker's step_and_maybe_reset, stub; 500 steps x {n_ov_rounds} rounds)")
+    print(report(res_w, baseline="batch [1]", difference=True))
+    payload["worker"] = {k: v.as_dict() for k, v in res_w.items()}
 
     verdict = "within" if r_step <= TARGET else "OVER"
     print(

@@ -194,6 +194,52 @@ def scenario_overhead(steps: int, rounds: int, warmup: int, verbose: bool, clock
     return results
 
 
+def scenario_worker(steps: int, rounds: int, warmup: int, verbose: bool, clock: str = "cpu"):
+    """A ``ParallelEnv`` worker's ``step_and_maybe_reset`` on a stub (no physics), three ways:
+    the batch-``[1]`` env, ``TransformedEnv(env, CPUUnbatch())`` and ``ManiSkillEnv(batch_size=[])``."""
+    from torchrl.envs import TransformedEnv
+
+    from maniskill_torchrl import CPUUnbatch
+
+    limit = 10 * steps + 100
+    builds = {
+        "batch [1]": lambda: make_env(max_episode_steps=limit),
+        "+ CPUUnbatch": lambda: TransformedEnv(make_env(max_episode_steps=limit), CPUUnbatch()),
+        "batch_size=[]": lambda: make_env(max_episode_steps=limit, batch_size=[]),
+    }
+    contenders, closers = [], []
+    for name, build in builds.items():
+        env = build()
+        wrapper = env.base_env if isinstance(env, TransformedEnv) else env
+        real = wrapper._env
+        actions = env_actions(real, steps)
+        with raw_mode(wrapper)():
+            real.reset(seed=SEED)
+            stub = _ReplayStub(real, real.step(actions[0]))
+        wrapper._env = stub
+        if env.batch_size == ():
+            actions = [a[0] for a in actions]
+        state: dict = {}
+
+        def setup(env=env, state=state):
+            state["td"] = env.reset(seed=SEED)
+
+        def run(env=env, actions=actions, state=state):
+            td, smr = state["td"], env.step_and_maybe_reset
+            for a in actions:
+                td.set("action", a)
+                _, td = smr(td)
+            return len(actions)
+
+        contenders.append(Contender(name, run, setup))
+        closers.append((wrapper, real, env))
+    results = interleave(contenders, rounds=rounds, warmup=warmup, verbose=verbose, clock=clock)
+    for wrapper, real, env in closers:
+        wrapper._env = real
+        env.close()
+    return results
+
+
 def scenario_paired(steps: int, rounds: int, warmup: int):
     """Per-step alternation of raw / step / step_and_maybe_reset on one env, CPU time per step."""
     import statistics

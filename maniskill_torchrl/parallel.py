@@ -5,8 +5,10 @@ found by profiling ``Collector(ParallelEnv(N, ManiSkillEnv + CPUUnbatch))`` on 2
 (``benchmarks/bench_collection.py``; the figures are in ``benchmarks/RESULTS.md``,
 "Collection"). The rest of the gap to gymnasium's ``AsyncVectorEnv`` of ManiSkill's
 ``CPUGymWrapper`` is TorchRL's per-step work in the collector, the ``ParallelEnv`` and the
-worker, on the critical path of every synchronous step, which no setting removes. For speed,
-prefer the batched env ``ManiSkillEnv(id, num_envs=N)`` or
+worker, on the critical path of every synchronous step, which no setting removes. Make the
+workers' envs ``ManiSkillEnv(id, batch_size=[])`` (unbatched by the env itself: no
+transformed env's step in each worker when no other transform is needed). For speed, prefer
+the batched env ``ManiSkillEnv(id, num_envs=N)`` or
 ``Collector(make_env, backend="process", num_collectors=N)``.
 
 1. **Waiting for the workers sleeps instead of spinning.** TorchRL 0.14 waits for a step's
@@ -39,11 +41,10 @@ two private hooks of ``torchrl.envs.ParallelEnv`` 0.14, ``_wait_for_workers`` an
 through :mod:`maniskill_torchrl._private`.
 
 Examples:
-    >>> from torchrl.envs import TransformedEnv
-    >>> from maniskill_torchrl import CPUUnbatch, ManiSkillEnv
+    >>> from maniskill_torchrl import ManiSkillEnv
     >>> from maniskill_torchrl.parallel import ParallelEnv
     >>> def make_env():
-    ...     return TransformedEnv(ManiSkillEnv("PickCube-v1", obs_mode="state"), CPUUnbatch())
+    ...     return ManiSkillEnv("PickCube-v1", obs_mode="state", batch_size=[])  # unbatched
     >>> env = ParallelEnv(2, make_env)  # batch [2]; a drop-in for torchrl.envs.ParallelEnv
     >>> env.rollout(3)["next", "observation"].shape
     torch.Size([2, 3, 42])
