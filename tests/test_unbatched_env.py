@@ -155,6 +155,30 @@ def test_serial_env_with_action_repeat_equals_cpu_unbatch_workers() -> None:
         close_envs([env, oracle])
 
 
+def test_transform_stack_equals_cpu_unbatch_stack() -> None:
+    """make_env's worker stack (IgnoreTerminations, ActionRepeat(3), EpisodeMetrics) on the
+    unbatched env gives the data of the same stack behind CPUUnbatch."""
+    from torchrl.envs import Compose
+
+    from maniskill_torchrl import EpisodeMetrics, IgnoreTerminations
+    from maniskill_torchrl.pipeline import make_env
+
+    kwargs = {"obs_mode": "state", "max_episode_steps": 2 * MAX_STEPS}
+    env = make_env("PickCube-v1", repeat=3, ignore_terminations=True, **kwargs)
+    oracle = TransformedEnv(
+        ManiSkillEnv("PickCube-v1", **kwargs),
+        Compose(CPUUnbatch(), IgnoreTerminations(), ActionRepeat(3), EpisodeMetrics()),
+    )
+    try:
+        assert env.base_env.batch_size == () and env.output_spec == oracle.output_spec
+        actions = random_actions(env.base_env.base_env.single_action_space, 2 * MAX_STEPS, seed=8)
+        got, want = _run(env, actions, seed=2), _run(oracle, actions, seed=2)
+        assert got["next", "done"].any() and got["next", "episode", "episode_len"].max() > 1
+        _assert_equal_tds(got, want)
+    finally:
+        close_envs([env, oracle])
+
+
 def test_wrapper_and_default_batch_size() -> None:
     env = ManiSkillWrapper(make_gym_env("PickCube-v1", obs_mode="state"), batch_size=())
     batched = ManiSkillEnv("PickCube-v1", obs_mode="state", batch_size=[1])  # the default, spelt out
