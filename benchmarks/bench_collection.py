@@ -27,10 +27,12 @@ Task PickCube-v1, ``obs_mode="state"``, random actions, ``max_episode_steps=50``
   ``lib`` (:class:`maniskill_torchrl.parallel.ParallelEnv`, the library's settings),
   ``wait=<spin|sleep>`` (that class with the given wait strategy), ``nobatch`` (that class
   without ``SCHED_BATCH`` workers), ``noinf`` (the workers' envs with ``inference_mode=False``),
+  ``unb`` (the workers' envs ``ManiSkillEnv(id, batch_size=[])``, no ``CPUUnbatch``),
   ``rp`` and ``dev`` (as for ``batched``);
 - ``multisync``: ``Collector(make_env, backend="process", num_collectors=N)`` (TorchRL's
   ``MultiSyncCollector``: one single env and one collector per process, data gathered per
-  batch instead of per step), the same worker env as ``parallel``.
+  batch instead of per step), the same worker env as ``parallel``; ``multisync:unb``: the
+  workers' envs ``ManiSkillEnv(id, batch_size=[])`` (no ``CPUUnbatch``), as for ``parallel``.
 
 Frames are agent steps (the collector's frames; gym: N per ``step``). Each run is a fresh
 Python process (this script with ``--child``) that builds the pipeline, warms up untimed

@@ -262,7 +262,7 @@ def child_multisync(n: int, repeat: int, seconds: float, opts: dict) -> dict:
 
     meter = _CPUMeter()
     collector = Collector(
-        functools.partial(_worker_env, repeat),
+        functools.partial(_worker_env, repeat, **env_options(opts)),
         policy=None,
         frames_per_batch=EPISODE * n,
         total_frames=-1,
