@@ -26,7 +26,9 @@ class CPUUnbatch(BatchSizeTransform):
     envs are what :class:`~torchrl.envs.ParallelEnv` /
     :class:`~torchrl.envs.SerialEnv` stack: ``ParallelEnv(N, make_env)`` then
     has ``batch_size=[N]``. It is the TorchRL counterpart of the unbatching
-    done by ManiSkill's ``CPUGymWrapper``.
+    done by ManiSkill's ``CPUGymWrapper``. For a ManiSkill env you make yourself,
+    ``ManiSkillEnv(env_id, batch_size=[])`` gives the same specs and entries without a
+    ``TransformedEnv`` (less CPU per step: ``benchmarks/RESULTS.md``, root cause 8).
 
     It is a :class:`~torchrl.envs.BatchSizeTransform` with a squeeze as
     ``reshape_fn`` (outputs and specs) plus checks: the parent must have
