@@ -253,25 +253,21 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
         if self._inference:  # normal tensors for the user (done below is computed out here)
             reward, terminated, truncated = reward.clone(), terminated.clone(), truncated.clone()
         # ManiSkill gives [B] tensors: unsqueeze is the cheapest way to [B, 1] (view(shape) costs
-        # twice as much on the CPU sim, where each op counts); other shapes go through view.
+        # twice as much on the CPU sim, where each op counts), and an unbatched env's [1] entries
+        # are ManiSkill's [1] tensors as they are; other shapes go through view.
         done = torch.logical_or(terminated, truncated)
-        if self._unbatched and reward.shape == terminated.shape == truncated.shape == (1,):
-            # ManiSkill's [1] flags are already the unbatched env's [1] entries.
-            source["reward"] = reward
-            source["terminated"] = terminated
-            source["truncated"] = truncated
-            source["done"] = done
-        elif reward.ndim == terminated.ndim == truncated.ndim == 1 and not self._unbatched:
-            source["reward"] = reward.unsqueeze(-1)
-            source["terminated"] = terminated.unsqueeze(-1)
-            source["truncated"] = truncated.unsqueeze(-1)
-            source["done"] = done.unsqueeze(-1)
+        if reward.ndim == terminated.ndim == truncated.ndim == 1:
+            if not self._unbatched:
+                reward, terminated = reward.unsqueeze(-1), terminated.unsqueeze(-1)
+                truncated, done = truncated.unsqueeze(-1), done.unsqueeze(-1)
         else:
             shape = self.batch_size + (1,)
-            source["reward"] = reward.view(shape)
-            source["terminated"] = terminated.view(shape)
-            source["truncated"] = truncated.view(shape)
-            source["done"] = done.view(shape)
+            reward, terminated = reward.view(shape), terminated.view(shape)
+            truncated, done = truncated.view(shape), done.view(shape)
+        source["reward"] = reward
+        source["terminated"] = terminated
+        source["truncated"] = truncated
+        source["done"] = done
         return new_tensordict(source, batch_size=self.batch_size, device=self.device)
 
     def _step_proc_data(self, next_tensordict_out: TensorDictBase) -> TensorDictBase:

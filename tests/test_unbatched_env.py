@@ -6,6 +6,8 @@ in ``test_cpu_unbatch.py``) and a raw ManiSkill loop. Every comparison seeds eve
 
 from __future__ import annotations
 
+from typing import Any
+
 import gymnasium as gym
 import pytest
 import torch
@@ -78,26 +80,75 @@ def test_same_specs_and_steps_as_cpu_unbatch(env_id: str, obs_mode: str, inferen
         close_envs([env, oracle])
 
 
-def test_same_as_raw_maniskill_loop() -> None:
-    env = ManiSkillEnv("PickCube-v1", batch_size=[], obs_mode="state", max_episode_steps=MAX_STEPS)
-    raw = make_gym_env("PickCube-v1", obs_mode="state", max_episode_steps=MAX_STEPS)
+def _raw_entries(obs: Any, info: dict, frame: torch.Tensor | None) -> dict:
+    """ManiSkill's ``[1, ...]`` outputs without the env dim, keyed as the unbatched env keys them
+    (Box obs: ``"observation"``; Dict obs: nested key tuples; tensor infos: their names)."""
+
+    def flat(d: dict, prefix: tuple = ()) -> dict:
+        out = {}
+        for k, v in d.items():
+            out.update(flat(v, prefix + (k,)) if isinstance(v, dict) else {prefix + (k,): v[0]})
+        return out
+
+    out = flat(obs) if isinstance(obs, dict) else {("observation",): obs[0]}
+    out.update({(k,): v[0] for k, v in info.items() if isinstance(v, torch.Tensor) and v.ndim >= 1})
+    if frame is not None:
+        out[("pixels",)] = frame[0]
+    return out
+
+
+def _assert_matches_raw(td: TensorDictBase, raw: dict, what: str) -> None:
+    td_keys = {k if isinstance(k, tuple) else (k,) for k in td.keys(True, True)}
+    flags = {("reward",), ("terminated",), ("truncated",), ("done",), ("action",)}
+    assert td_keys - flags == set(raw), what  # every entry is checked, and nothing is missing
+    for key, want in raw.items():
+        got = td[key]
+        assert got.dtype == want.dtype and got.shape == want.shape, (what, key)
+        assert torch.equal(got, want), (what, key)
+
+
+@pytest.mark.parametrize(
+    ("env_id", "kwargs"),
+    [
+        ("PickCube-v1", {"obs_mode": "state"}),  # inference mode (the default)
+        ("PickCube-v1", {"obs_mode": "state", "inference_mode": False}),
+        ("PickCube-v1", {"obs_mode": "state_dict"}),
+        ("TwoRobotPickCube-v1", {"obs_mode": "state_dict"}),  # a Dict action space
+        ("PickCube-v1", {"obs_mode": "rgb", "from_pixels": True}),
+    ],
+)
+def test_same_as_raw_maniskill_loop(env_id: str, kwargs: dict) -> None:
+    """Every entry, reset and step, against a raw ManiSkill env stepped with the same actions
+    (made with a batch of one), across two episodes with explicitly seeded resets."""
+    raw_kwargs = {k: v for k, v in kwargs.items() if k not in ("inference_mode", "from_pixels")}
+    if kwargs.get("from_pixels"):
+        raw_kwargs["render_mode"] = "rgb_array"
+    env = ManiSkillEnv(env_id, batch_size=[], max_episode_steps=MAX_STEPS, **kwargs)
+    raw = make_gym_env(env_id, max_episode_steps=MAX_STEPS, **raw_kwargs)
+    render = raw.render if kwargs.get("from_pixels") else lambda: None
     try:
-        actions = random_actions(raw.unwrapped.single_action_space, MAX_STEPS, seed=1)
-        td = env.reset(seed=4)
-        obs, _ = raw.reset(seed=4)
-        assert torch.equal(td["observation"], obs[0])
-        for a in actions:
-            td = env.step(td.set("action", a))
-            obs, reward, terminated, truncated, info = raw.step(a.unsqueeze(0))
+        actions = random_actions(raw.unwrapped.single_action_space, MAX_STEPS + 2, seed=1)
+        seeds = iter([4, 17])
+        ended = 0
+        td = None
+        for t, a in enumerate(actions):
+            if td is None or td["done"].item():
+                seed = next(seeds)
+                td = env.reset(seed=seed)
+                obs, info = raw.reset(seed=seed)
+                _assert_matches_raw(td, _raw_entries(obs, info, render()), f"reset before step {t}")
+            td = env.step(td.set("action", _as_action(a)))
+            batched = {k: v.unsqueeze(0) for k, v in a.items()} if isinstance(a, dict) else a.unsqueeze(0)
+            obs, reward, terminated, truncated, info = raw.step(batched)
             nxt = td["next"]
-            assert torch.equal(nxt["observation"], obs[0])
-            assert torch.equal(nxt["reward"], reward) and nxt["reward"].shape == (1,)
+            _assert_matches_raw(nxt, _raw_entries(obs, info, render()), f"step {t}")
+            assert nxt["reward"].shape == nxt["done"].shape == (1,)
+            assert torch.equal(nxt["reward"], reward)
             assert torch.equal(nxt["terminated"], terminated) and torch.equal(nxt["truncated"], truncated)
             assert torch.equal(nxt["done"], terminated | truncated)
-            assert torch.equal(nxt["success"], info["success"][0]) and nxt["success"].shape == ()
-            assert torch.equal(nxt["elapsed_steps"], info["elapsed_steps"][0])
-            td = td["next"].clone()
-        assert bool(nxt["truncated"])  # the time limit was reached
+            ended += int(nxt["done"].item())
+            td = nxt.clone()
+        assert ended >= 1  # the second episode started from a seeded reset
     finally:
         close_envs([env, raw])
 
