@@ -16,7 +16,8 @@ Task PickCube-v1, ``obs_mode="state"``, random actions, ``max_episode_steps=50``
   repeat 2): the batched CPU env. Skipped with a note when its construction raises;
 - ``batched:<options>``: the same with settings changed (comma-separated options): ``rp``
   (``policy=RandomPolicy(env.action_spec)``), ``dev`` (``device=env.device``), ``notraj``
-  (``track_traj_ids=False``), ``noinf`` (``inference_mode=False``), ``t1`` (one torch thread);
+  (``track_traj_ids=False``), ``noinf`` (``inference_mode=False``), ``t1`` (one torch thread),
+  ``workers`` (``in_process=False``: every sub-env in a worker process, none in this one);
 - ``parallel``: ``Collector(ParallelEnv(N, lambda: TransformedEnv(ManiSkillEnv(id,
   obs_mode="state", max_episode_steps=50), CPUUnbatch())), policy=None)``, what TorchRL
   users write by habit (``Compose(CPUUnbatch(), ActionRepeat(2))`` inside the workers for

@@ -12,7 +12,8 @@ in the gym workers with ``--repeat 2``):
 - ``batched``: ``Collector(ManiSkillEnv(id, num_envs=N), policy=None)``, TorchRL's defaults;
 - ``batched:<options>``, options joined by ``+``: ``rp`` (``RandomPolicy(env.action_spec)``:
   the leaf spec), ``dev`` (``device=env.device``), ``notraj`` (``track_traj_ids=False``),
-  ``noinf`` (``ManiSkillEnv(..., inference_mode=False)``: at N=1 the sim runs in this
+  ``workers`` (``ManiSkillEnv(..., in_process=False)``: every sub-env in a worker process,
+  none stepped in this one), ``noinf`` (``ManiSkillEnv(..., inference_mode=False)``: at N=1 the sim runs in this
   process, in grad mode);
 - ``parallel[:<options>]``: ``Collector(ParallelEnv(N, ManiSkillEnv + CPUUnbatch))`` with
   :class:`maniskill_torchrl.parallel.ParallelEnv` (``torchrl``: TorchRL's own, started with

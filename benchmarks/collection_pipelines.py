@@ -46,8 +46,11 @@ def _gym_thunk(repeat: int):
 
 def env_options(opts: dict) -> dict:
     """The ``ManiSkillEnv`` keywords that the options ask for: ``noinf`` (``inference_mode=False``),
-    ``unb`` (``batch_size=[]``: the workers' envs unbatched by ``ManiSkillEnv`` itself)."""
+    ``unb`` (``batch_size=[]``: the workers' envs unbatched by ``ManiSkillEnv`` itself),
+    ``workers`` (``in_process=False``: every sub-env of a batched CPU env in a worker process)."""
     out: dict = {}
+    if "workers" in opts:
+        out["in_process"] = False
     if "noinf" in opts:
         out["inference_mode"] = False
     if "unb" in opts:

@@ -7,7 +7,7 @@ each running a TorchRL ``Collector`` over one env of this library:
 - ``--num-envs 1`` (default): ``ManiSkillEnv(env_id, obs_mode="state", batch_size=[]) ->
   EpisodeMetrics`` (unbatched), one CPU-sim env in the actor process;
 - ``--num-envs N``: ``ManiSkillEnv(env_id, num_envs=N) -> EpisodeMetrics``, one batched env
-  (on the CPU sim, N worker processes under the actor: the fast CPU path).
+  (on the CPU sim, one process per env: sub-env 0 in the actor, N - 1 workers under it).
 
 The policy is a small MLP actor (``TensorDictModule``). Between batches its weights are
 changed here (a random perturbation; a learner would take an optimiser step) and pushed to

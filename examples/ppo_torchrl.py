@@ -7,8 +7,8 @@ Two configurations:
   env (``ManiSkillEnv(env_id, num_envs=512, sim_backend="gpu")``, batch
   ``[512]``); partial resets go through TorchRL's ``"_reset"`` mask.
 - **CPU**: the same call, ``ManiSkillEnv(env_id, num_envs=4)``, on the CPU
-  sim: one batched TorchRL env over 4 worker processes (one CPU-sim env
-  each), the fastest CPU path (``benchmarks/RESULTS.md``). ``--vec parallel``
+  sim: one batched TorchRL env over 4 processes (one CPU-sim env each, the
+  first in this one), the fastest CPU path (``benchmarks/RESULTS.md``). ``--vec parallel``
   / ``--vec serial`` stack single unbatched ``ManiSkillEnv(batch_size=[])`` envs in a
   ``ParallelEnv`` / ``SerialEnv`` instead.
   ``--smoke`` is a few hundred frames through 2 batched CPU envs that checks

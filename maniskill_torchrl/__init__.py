@@ -1,7 +1,7 @@
 """ManiSkill 3 as a first-class TorchRL citizen.
 
 - :class:`ManiSkillEnv` / :class:`ManiSkillWrapper`: ManiSkill tasks as TorchRL envs.
-- :class:`CPUVectorEnv`: N CPU-sim envs in worker processes with the GPU sim's batched API.
+- :class:`CPUVectorEnv`: N CPU-sim envs, one per process, with the GPU sim's batched API.
 - :mod:`maniskill_torchrl.transforms`: ``ActionRepeat``, ``CPUUnbatch``,
   ``IgnoreTerminations``, ``EpisodeMetrics`` as TorchRL transforms.
 - :mod:`maniskill_torchrl.wrappers`: drop-in ``CPUGymWrapper`` / ``ActionRepeatWrapper``.

@@ -1,13 +1,16 @@
-"""N ManiSkill CPU-sim envs, one per worker process, behind ManiSkill's batched torch API.
+"""N ManiSkill CPU-sim envs, one per process, behind ManiSkill's batched torch API.
 
 ManiSkill's CPU sim holds one env per process. :class:`CPUVectorEnv` runs ``N``
-of them in gymnasium's :class:`~gymnasium.vector.AsyncVectorEnv` (the engine
-ManiSkill's own CPU baselines use) and answers like one GPU-sim env of
-``num_envs=N``: ``step`` / ``reset`` take and return batched torch tensors
-(``[N, ...]``), ``reset(options={"env_idx": ...})`` resets some envs only, and
-``get_info()`` describes the info entries. :class:`~maniskill_torchrl.ManiSkillWrapper`
-wraps it as it wraps a GPU-sim env, so CPU and GPU users write the same code.
+of them, sub-env 0 in this process and the others in gymnasium's
+:class:`~gymnasium.vector.AsyncVectorEnv` (the engine ManiSkill's own CPU baselines
+use), and answers like one GPU-sim env of ``num_envs=N``: ``step`` / ``reset`` take
+and return batched torch tensors (``[N, ...]``), ``reset(options={"env_idx": ...})``
+resets some envs only, and ``get_info()`` describes the info entries.
+:class:`~maniskill_torchrl.ManiSkillWrapper` wraps it as it wraps a GPU-sim env, so CPU
+and GPU users write the same code.
 
+This process steps sub-env 0 while the workers step the others, instead of sleeping
+until they are done: one process fewer to wake and to send actions to per step.
 Each worker writes its whole step (observation, reward, flags, tensor infos) into
 gymnasium's shared-memory buffers with ManiSkill's own dtypes; only the actions and
 an empty info dict cross the pipes. Nothing is rounded on the way: every sub-env
@@ -27,6 +30,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode
+from gymnasium.vector.utils import create_empty_array
 
 from maniskill_torchrl.cpu_worker import (
     INFO,
@@ -35,9 +39,10 @@ from maniskill_torchrl.cpu_worker import (
     TERMINATED,
     TRUNCATED,
     MakeWorker,
-    copy_tree,
+    join_rows,
+    split_first,
     to_numpy,
-    view_tree,
+    write_row,
     zeros_tree,
 )
 
@@ -45,41 +50,52 @@ __all__ = ["CPUVectorEnv"]
 
 
 class CPUVectorEnv:
-    """``num_envs`` ManiSkill CPU-sim envs in worker processes, with a GPU-sim env's batched API.
+    """``num_envs`` ManiSkill CPU-sim envs, one per process, with a GPU-sim env's batched API.
 
     Args:
         env_id (str): a registered ManiSkill task, e.g. ``"PickCube-v1"``.
-        num_envs (int): worker processes, one env each.
+        num_envs (int): sub-envs, one per process.
 
     Keyword Args:
+        in_process (bool): sub-env 0 runs in this process, stepped while the workers step
+            the others (default: ``num_envs - 1`` worker processes). False: ``num_envs``
+            workers, and this process only waits for them.
         context (str): the multiprocessing start method of the workers. ``"forkserver"``
             (default) or ``"spawn"``; ``"fork"`` hangs once SAPIEN is loaded in this process.
-        **maniskill_kwargs: passed to every worker's ``gym.make`` (``obs_mode``,
+        **maniskill_kwargs: passed to every sub-env's ``gym.make`` (``obs_mode``,
             ``control_mode``, ``max_episode_steps``, ``render_mode``...).
 
     The API is the one of ``gym.make(env_id, num_envs=N)`` on the GPU sim, without
     auto-reset: ``step(action)`` with ``[N, ...]`` actions gives ``[N, ...]`` torch
     observations, reward ``[N]`` (float32), terminated / truncated ``[N]`` (bool) and an
-    info dict of ``[N, ...]`` tensors. Info tensors are views of the shared buffers that
-    the next call overwrites (as ManiSkill's ``elapsed_steps`` is updated in place):
-    clone what you keep. Seeding follows gymnasium's vector envs: ``reset(seed=s)``
-    resets sub-env ``i`` with ``seed=s + i``, and so does
+    info dict of ``[N, ...]`` tensors, all fresh copies. Seeding follows gymnasium's vector
+    envs: ``reset(seed=s)`` resets sub-env ``i`` with ``seed=s + i``, and so does
     ``reset(seed=s, options={"env_idx": idx})`` for the sub-envs in ``idx`` only (the
     others keep running). Without a seed, a sub-env's reset is ManiSkill's unseeded
-    reset, which draws from its worker's global torch RNG. All sub-envs are stepped
-    together: gymnasium's ``AsyncVectorEnv`` has no partial step. After
-    :meth:`set_repeat` ``(k)`` each ``step`` repeats its action up to ``k`` times inside
-    every worker, which stops at its own episode's end (ManiSkill's ``ActionRepeatWrapper``
+    reset, which draws from its process's global torch RNG (this process's, for sub-env 0).
+    All sub-envs are stepped together: gymnasium's ``AsyncVectorEnv`` has no partial step.
+    After :meth:`set_repeat` ``(k)`` each ``step`` repeats its action up to ``k`` times in
+    every sub-env, which stops at its own episode's end (ManiSkill's ``ActionRepeatWrapper``
     per sub-env): one round trip per ``step``, no physics after an end.
 
-    A failure in a worker is raised here, by the call that met it: gymnasium re-raises
-    the worker's Python exception; a worker that died makes the call raise a
-    ``RuntimeError`` naming it, after the other workers are stopped.
+    Every call into ManiSkill runs under :func:`torch.inference_mode`, sub-env 0's too; only
+    numpy copies leave the sub-envs. A failure is raised here, by the call that met it: sub-env
+    0's exception as is, gymnasium re-raises a worker's Python exception, and a worker that
+    died makes the call raise a ``RuntimeError`` naming its sub-env, after the other workers
+    are stopped.
     """
 
     gpu_sim_enabled = False
 
-    def __init__(self, env_id: str, num_envs: int, *, context: str = "forkserver", **maniskill_kwargs: Any) -> None:
+    def __init__(
+        self,
+        env_id: str,
+        num_envs: int,
+        *,
+        in_process: bool = True,
+        context: str = "forkserver",
+        **maniskill_kwargs: Any,
+    ) -> None:
         if context == "fork":
             raise ValueError(
                 "CPUVectorEnv(context='fork') hangs once SAPIEN is loaded in this process; "
@@ -87,30 +103,48 @@ class CPUVectorEnv:
             )
         if maniskill_kwargs.pop("num_envs", 1) != 1:
             raise ValueError("num_envs is the second argument of CPUVectorEnv; do not pass it in maniskill_kwargs.")
+        if not isinstance(num_envs, int) or num_envs < 1:
+            raise ValueError(f"CPUVectorEnv: num_envs must be a positive int, got {num_envs!r}.")
         maniskill_kwargs.setdefault("sim_backend", "physx_cpu")
-        self.num_envs = int(num_envs)
+        self.num_envs = num_envs
         self.device = torch.device("cpu")
+        self._first = 1 if in_process else 0  # the sub-env index of the first worker
+        self._vec: AsyncVectorEnv | None = None
+        self._local = None
+        self._closed = False
+        make = MakeWorker(env_id, maniskill_kwargs)
         try:
-            self._vec = AsyncVectorEnv(
-                [MakeWorker(env_id, maniskill_kwargs)] * self.num_envs,
-                shared_memory=True,
-                copy=False,  # we copy once, into torch
-                context=context,
-                autoreset_mode=AutoresetMode.DISABLED,
-            )
+            if num_envs > self._first:
+                self._vec = AsyncVectorEnv(
+                    [make] * (num_envs - self._first),
+                    shared_memory=True,
+                    copy=False,  # we copy once, into torch
+                    context=context,
+                    autoreset_mode=AutoresetMode.DISABLED,
+                )
+            if in_process:
+                self._local = make.make()
         except (EOFError, ConnectionError) as err:  # a worker died before gymnasium's own error handling
+            self.close()
             raise RuntimeError(
                 f"CPUVectorEnv({env_id!r}, {num_envs}): a worker process died while starting (its traceback is "
                 f"printed above). Workers start with context={context!r}, which imports the main script again: "
                 "in a script, build envs only under `if __name__ == '__main__':`."
             ) from err
-        space = self._vec.single_observation_space
+        except BaseException:
+            self.close()
+            raise
+        if self._local is not None:
+            space, self.single_action_space = self._local.observation_space, self._local.action_space
+            self.render_mode = self._local.render_mode
+            self._row = create_empty_array(space, n=1)  # sub-env 0's last step, as a worker's in shared memory
+        else:
+            space, self.single_action_space = self._vec.single_observation_space, self._vec.single_action_space
+            self.render_mode = self._vec.render_mode
+            self._row = None
         self.single_observation_space = space[OBS]
-        self.single_action_space = self._vec.single_action_space
         self._info_space = space[INFO]
-        self.render_mode = self._vec.render_mode
         self.spec = gym.spec(env_id)
-        self._closed = False
         self._repeat = 1
 
     @property
@@ -119,56 +153,109 @@ class CPUVectorEnv:
 
     # ---------------------------------------------------------------- data
     def _read(self) -> tuple[Any, torch.Tensor, torch.Tensor, torch.Tensor, dict]:
-        buf = self._vec.observations  # numpy views of the shared memory
-        obs = copy_tree(buf[OBS])
-        info = view_tree(buf[INFO])
-        reward = copy_tree(buf[REWARD])
-        terminated = copy_tree(buf[TERMINATED])
-        truncated = copy_tree(buf[TRUNCATED])
-        return obs, reward, terminated, truncated, info
+        step = join_rows(self._row, None if self._vec is None else self._vec.observations)
+        return step[OBS], step[REWARD], step[TERMINATED], step[TRUNCATED], step[INFO]
 
     def step(
         self, action: torch.Tensor | Mapping[str, torch.Tensor]
     ) -> tuple[Any, torch.Tensor, torch.Tensor, torch.Tensor, dict]:
+        vec, local = self._vec, self._local
+        action = to_numpy(action)
+        if local is not None:
+            first, action = split_first(action)
+        if vec is not None:
+            try:
+                vec.step_async(action)
+            except (EOFError, OSError) as err:
+                raise self._worker_died("step") from err
         try:
-            self._vec.step_async(to_numpy(action))
-            self._vec.step_wait()
-        except (EOFError, OSError) as err:
-            raise self._worker_died("step") from err
+            if local is not None:  # while the workers step theirs
+                write_row(self._row, local.step(first)[0])
+        finally:
+            if vec is not None:
+                try:
+                    vec.step_wait()
+                except (EOFError, OSError) as err:
+                    raise self._worker_died("step") from err
         return self._read()
 
     def reset(self, *, seed: int | list[int] | None = None, options: dict | None = None) -> tuple[Any, dict]:
         options = dict(options) if options else {}
         env_idx = options.pop("env_idx", None)
+        mask = np.ones(self.num_envs, dtype=np.bool_)
         if env_idx is not None:
-            mask = np.zeros(self.num_envs, dtype=np.bool_)
+            mask[:] = False
             mask[torch.as_tensor(env_idx, device="cpu").numpy()] = True
-            if not mask.all():
-                options["reset_mask"] = mask
-                if isinstance(seed, int):  # gymnasium's convention, on the sub-envs being reset
-                    seed = [seed + i if m else None for i, m in enumerate(mask)]
+        seeds = self._seeds(seed, mask)
+        vec, workers = self._vec, mask[self._first :]
+        waiting = vec is not None and bool(workers.any())
+        if waiting:
+            worker_options = dict(options)
+            if not workers.all():
+                worker_options["reset_mask"] = workers
+            try:
+                vec.reset_async(seed=seeds[self._first :], options=worker_options or None)
+            except (EOFError, OSError) as err:
+                raise self._worker_died("reset") from err
         try:
-            self._vec.reset(seed=seed, options=options or None)
-        except (EOFError, OSError) as err:
-            raise self._worker_died("reset") from err
+            if self._local is not None and mask[0]:
+                write_row(self._row, self._local.reset(seed=seeds[0], options=options or None)[0])
+        finally:
+            if waiting:
+                try:
+                    vec.reset_wait()
+                except (EOFError, OSError) as err:
+                    raise self._worker_died("reset") from err
         obs, _, _, _, info = self._read()
         return obs, info
 
+    def _seeds(self, seed: int | list[int] | None, mask: np.ndarray) -> list[int | None]:
+        """Each sub-env's reset seed: gymnasium's convention (``seed + i``) on the sub-envs in ``mask``."""
+        if seed is None:
+            return [None] * self.num_envs
+        if isinstance(seed, (int, np.integer)):
+            return [int(seed) + i if m else None for i, m in enumerate(mask)]
+        seeds = list(seed)
+        if len(seeds) != self.num_envs:
+            raise ValueError(f"reset(seed=...) got {len(seeds)} seeds for {self.num_envs} sub-envs.")
+        return seeds
+
+    def call(self, name: str, *args: Any, **kwargs: Any) -> tuple[Any, ...]:
+        """Each sub-env's method ``name`` called with these arguments (its value, for an attribute),
+        in sub-env order, as gymnasium's ``AsyncVectorEnv.call``."""
+        vec, results = self._vec, []
+        if vec is not None:
+            try:
+                vec.call_async(name, *args, **kwargs)
+            except (EOFError, OSError) as err:
+                raise self._worker_died(name) from err
+        try:
+            if self._local is not None:
+                attr = self._local.get_wrapper_attr(name)
+                results.append(attr(*args, **kwargs) if callable(attr) else attr)
+        finally:
+            if vec is not None:
+                try:
+                    results.extend(vec.call_wait())
+                except (EOFError, OSError) as err:
+                    raise self._worker_died(name) from err
+        return tuple(results)
+
     @property
     def repeat(self) -> int:
-        """How many times each ``step`` applies its action in the workers (1: plain steps)."""
+        """How many times each ``step`` applies its action in the sub-envs (1: plain steps)."""
         return self._repeat
 
     def set_repeat(self, repeat: int) -> None:
-        """From the next ``step`` on, every worker applies the action up to ``repeat`` times.
+        """From the next ``step`` on, every sub-env applies the action up to ``repeat`` times.
 
-        Each worker steps its env through the gym shim's
+        Each sub-env steps through the gym shim's
         :class:`~maniskill_torchrl.wrappers.ActionRepeatWrapper` (bit for bit ManiSkill's):
         reward summed, flags OR'ed, observation and infos of the sub-env's last real step, no
         step after its episode's end. ``repeat=1`` restores plain steps. One round trip,
         only when the value changes. :class:`~maniskill_torchrl.ManiSkillWrapper` sets it
         for the steps that :class:`~maniskill_torchrl.transforms.ActionRepeat` hands to the
-        workers, and restores the repeat this env had when it was wrapped for the others.
+        sub-envs, and restores the repeat this env had when it was wrapped for the others.
 
         Raises:
             TypeError: ``repeat`` is not an int.
@@ -179,10 +266,7 @@ class CPUVectorEnv:
         repeat = check_repeat(repeat)
         if repeat == self._repeat:
             return
-        try:
-            self._vec.call("set_repeat", repeat)
-        except (EOFError, OSError) as err:
-            raise self._worker_died("set_repeat") from err
+        self.call("set_repeat", repeat)
         self._repeat = repeat
 
     def get_info(self) -> dict:
@@ -190,17 +274,17 @@ class CPUVectorEnv:
         return zeros_tree(self._info_space, self.num_envs)
 
     def render_frame_shape(self) -> tuple[int, ...]:
-        """``(H, W, 3)`` of one sub-env's ``render()`` frame, asked of worker 0."""
-        return self._vec.call("render_frame_shape")[0]
+        """``(H, W, 3)`` of one sub-env's ``render()`` frame."""
+        return self.call("render_frame_shape")[0]
 
     def render(self) -> torch.Tensor:
-        """Every worker's ``render()``, concatenated: ``[N, H, W, 3]`` uint8 for ``rgb_array``."""
-        return torch.cat([torch.as_tensor(f) for f in self._vec.call("render")])
+        """Every sub-env's ``render()``, concatenated: ``[N, H, W, 3]`` uint8 for ``rgb_array``."""
+        return torch.cat([torch.as_tensor(f) for f in self.call("render")])
 
     def _worker_died(self, call: str) -> RuntimeError:
-        """Tears the workers down (a dead one would leave the others waiting) and says which died."""
+        """Tears the sub-envs down (a dead worker would leave the others waiting) and says which died."""
         vec = self._vec
-        dead = [i for i, p in enumerate(vec.processes) if not p.is_alive()]
+        dead = [i + self._first for i, p in enumerate(vec.processes) if not p.is_alive()]
         self._closed = vec.closed = True
         for process in vec.processes:
             if process.is_alive():
@@ -209,16 +293,21 @@ class CPUVectorEnv:
             pipe.close()
         for process in vec.processes:
             process.join(5)
+        if self._local is not None:
+            self._local.close()
         return RuntimeError(
-            f"CPUVectorEnv worker(s) {dead} of {self.spec.id} died during {call}(); the env is closed. "
-            "Look for the worker's own error above (a crash in the simulator, or out of memory) and "
+            f"CPUVectorEnv worker(s) of sub-env(s) {dead} of {self.spec.id} died during {call}(); the env is "
+            "closed. Look for the worker's own error above (a crash in the simulator, or out of memory) and "
             "make a new env."
         )
 
     def close(self) -> None:
         if not self._closed:
             self._closed = True
-            self._vec.close()
+            if self._vec is not None:
+                self._vec.close()
+            if self._local is not None:
+                self._local.close()
 
     def __repr__(self) -> str:
         repeat = f", repeat={self._repeat}" if self._repeat != 1 else ""

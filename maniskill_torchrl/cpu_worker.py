@@ -4,8 +4,9 @@ shared buffers both sides read.
 Each worker process holds one ManiSkill CPU-sim env behind :class:`StepInObservation`, which
 writes its whole step (observation, reward, flags, tensor infos) into gymnasium's shared-memory
 observation buffers with ManiSkill's own dtypes; :class:`MakeWorker` is the picklable factory
-that builds it in the worker. The tree helpers at the end convert between those numpy buffers
-and the parent's batched torch tensors.
+that builds it in the worker (and the parent's own sub-env 0, whose step the parent writes into
+a one-row buffer of the same layout). The tree helpers at the end convert between those numpy
+buffers and the parent's batched torch tensors.
 
 Like ``cpu_vector.py``, this module imports neither TorchRL nor the rest of the library beyond
 ``_maniskill`` when it loads: the workers import it, and start faster without them. A worker
@@ -34,8 +35,9 @@ __all__ = [
     "StepInObservation",
     "MakeWorker",
     "to_numpy",
-    "copy_tree",
-    "view_tree",
+    "split_first",
+    "write_row",
+    "join_rows",
     "zeros_tree",
 ]
 
@@ -178,10 +180,14 @@ class MakeWorker:
         self.env_id, self.kwargs = env_id, kwargs
 
     def __call__(self) -> gym.Env:
-        import mani_skill.envs  # noqa: F401  (registers the tasks in the worker)
-
         if multiprocessing.parent_process() is not None:  # a worker; gymnasium also calls this in the parent
             _batch_scheduling()
+        return self.make()
+
+    def make(self) -> StepInObservation:
+        """The env, with no change to this process's scheduling (the parent's own sub-env)."""
+        import mani_skill.envs  # noqa: F401  (registers the tasks in the worker)
+
         return StepInObservation(gym.make(self.env_id, num_envs=1, **self.kwargs))
 
 
@@ -208,18 +214,32 @@ def to_numpy(action: Any) -> Any:
     return {k: to_numpy(v) for k, v in action.items()}
 
 
-def copy_tree(x: Any) -> Any:
-    """Numpy buffers -> torch copies (observations: the caller keeps them)."""
+def split_first(x: Any) -> tuple[Any, Any]:
+    """``[N, ...]`` numpy actions (or dicts of them) -> (row 0, copied: the sub-env in this process
+    may keep it while the caller reuses its tensor; rows ``1:``, for the workers)."""
     if isinstance(x, np.ndarray):
-        return torch.from_numpy(x.copy())  # a third of torch.tensor(x)'s time, same tensor
-    return {k: copy_tree(v) for k, v in x.items()}
+        return x[0].copy(), x[1:]
+    pairs = {k: split_first(v) for k, v in x.items()}
+    return {k: p[0] for k, p in pairs.items()}, {k: p[1] for k, p in pairs.items()}
 
 
-def view_tree(x: Any) -> Any:
-    """Numpy buffers -> torch views (infos: the next call overwrites them)."""
-    if isinstance(x, np.ndarray):
-        return torch.from_numpy(x)
-    return {k: view_tree(v) for k, v in x.items()}
+def write_row(buf: Any, value: Any) -> None:
+    """Writes one sub-env's unbatched entries into ``[1, ...]`` buffers, cast to their dtypes as
+    gymnasium writes a worker's into shared memory."""
+    if isinstance(buf, np.ndarray):
+        buf[0] = np.asarray(value, dtype=buf.dtype)
+    else:
+        for k, b in buf.items():
+            write_row(b, value[k])
+
+
+def join_rows(*parts: Any) -> Any:
+    """``[k, ...]`` numpy buffers (or dicts of them; None: left out), e.g. sub-env 0's ``[1, ...]``
+    and the workers' shared ``[N - 1, ...]`` -> ``[N, ...]`` torch copies, one copy each."""
+    parts = [p for p in parts if p is not None]
+    if isinstance(parts[0], np.ndarray):
+        return torch.from_numpy(np.concatenate(parts))
+    return {k: join_rows(*(p[k] for p in parts)) for k in parts[0]}
 
 
 def zeros_tree(space: gym.spaces.Dict, n: int) -> dict:

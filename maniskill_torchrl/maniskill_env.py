@@ -1,5 +1,5 @@
-""":class:`ManiSkillEnv`: makes a ManiSkill 3 task (``gym.make``, or a :class:`CPUVectorEnv` of
-worker processes for several CPU-sim envs) and wraps it as a TorchRL env."""
+""":class:`ManiSkillEnv`: makes a ManiSkill 3 task (``gym.make``, or a :class:`CPUVectorEnv`, one
+process per env, for several CPU-sim envs) and wraps it as a TorchRL env."""
 
 from __future__ import annotations
 
@@ -30,21 +30,25 @@ class ManiSkillEnv(ManiSkillWrapper):
         num_envs (int): parallel envs, the batch size. On the GPU sim, one
             simulator; on the CPU sim (``sim_backend="cpu"``, or ``"auto"``
             without CUDA), which holds one env per process, ``num_envs > 1``
-            runs one worker process per env
-            (:class:`~maniskill_torchrl.cpu_vector.CPUVectorEnv`, gymnasium's
-            ``AsyncVectorEnv`` underneath) with the same keys, specs and dtypes.
+            runs one process per env, sub-env 0 in this one and the others in
+            workers (:class:`~maniskill_torchrl.cpu_vector.CPUVectorEnv`, gymnasium's
+            ``AsyncVectorEnv`` underneath), with the same keys, specs and dtypes.
         from_pixels (bool): add ``"pixels"`` (sets ``render_mode="rgb_array"``).
         inference_mode (bool, optional): run ManiSkill under :func:`torch.inference_mode`
             (see :class:`ManiSkillWrapper`). Default: on for a CPU-sim env in this process
             (``num_envs=1``, and each env of a ``ParallelEnv`` of singles: 0.83x the CPU of a
-            ManiSkill step in grad mode), off on the GPU sim; ``num_envs > 1`` CPU workers
-            always use it. Pass False if your code calls ``env.base_env``'s methods itself
+            ManiSkill step in grad mode), off on the GPU sim; the sub-envs of ``num_envs > 1``
+            on the CPU sim always use it. Pass False if your code calls ``env.base_env``'s methods itself
             outside inference mode.
         batch_size (list of int, optional): ``[num_envs]`` by default. ``[]`` with ``num_envs=1``
             makes one unbatched env, what :class:`~torchrl.envs.ParallelEnv` and
             :class:`~torchrl.envs.SerialEnv` stack: the same specs and entries as
             ``TransformedEnv(ManiSkillEnv(env_id), CPUUnbatch())``, without a transformed env's
             step on top of each ManiSkill step (see :class:`ManiSkillWrapper`).
+        in_process (bool): CPU sim with ``num_envs > 1``: sub-env 0 steps in this process
+            while the workers step the others (default). False: every sub-env in a worker
+            process, this one only waits. Elsewhere every env is in this process and this is
+            not read.
         pixels_only, info_keys, device, allow_done_after_reset: as in
             :class:`ManiSkillWrapper`.
         **maniskill_kwargs: passed to ``gym.make`` (``obs_mode``,
@@ -73,6 +77,7 @@ class ManiSkillEnv(ManiSkillWrapper):
         allow_done_after_reset: bool = False,
         inference_mode: bool | None = None,
         batch_size: Sequence[int] | None = None,
+        in_process: bool = True,
         **maniskill_kwargs: Any,
     ) -> None:
         if env_id not in registered_env_ids():
@@ -92,9 +97,9 @@ class ManiSkillEnv(ManiSkillWrapper):
         # ManiSkill's "auto" is the CPU sim for one env; for more, the GPU sim when there is CUDA.
         on_cpu = backend in _CPU_BACKENDS or (backend == "auto" and (num_envs == 1 or not torch.cuda.is_available()))
         if num_envs > 1 and on_cpu:
-            # The CPU sim holds one env per process: one worker process per env.
+            # The CPU sim holds one env per process: one process per env.
             maniskill_kwargs["sim_backend"] = "physx_cpu"
-            env = CPUVectorEnv(env_id, num_envs, **maniskill_kwargs)
+            env = CPUVectorEnv(env_id, num_envs, in_process=in_process, **maniskill_kwargs)
         else:
             if not on_cpu:
                 if not torch.cuda.is_available():

@@ -62,18 +62,18 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
     ``options={"env_idx": ...}``: unseeded on the GPU sim, as ManiSkill does; on a
     :class:`~maniskill_torchrl.cpu_vector.CPUVectorEnv` seeded with the next draw
     ``d`` (sub-env ``i`` gets ``d + i``), so that CPU runs stay reproducible from
-    ``s`` whatever each worker's global torch RNG holds.
+    ``s`` whatever each sub-env's process's global torch RNG holds.
 
     Several CPU envs: wrap a :class:`~maniskill_torchrl.cpu_vector.CPUVectorEnv`
-    (``ManiSkillEnv(env_id, num_envs=N)`` does it on the CPU sim): one worker
-    process per env, the same batch ``[N]``, keys, specs and dtypes as the GPU sim.
+    (``ManiSkillEnv(env_id, num_envs=N)`` does it on the CPU sim): one process per
+    env (sub-env 0 in this one), the same batch ``[N]``, keys, specs and dtypes as the GPU sim.
 
     Partial steps: ManiSkill steps all of its envs together (the GPU sim, and
-    the CPU workers of a ``CPUVectorEnv``, which gymnasium steps all at once),
+    the CPU sub-envs of a ``CPUVectorEnv``, which it steps all at once),
     so a ``"_step"`` mask is not honoured by this env (use a
     :class:`~torchrl.envs.ParallelEnv` of single CPU envs for that). Placed
     directly on a ``CPUVectorEnv`` one, :class:`~maniskill_torchrl.transforms.ActionRepeat`
-    has the workers repeat each action themselves
+    has the sub-envs repeat each action themselves
     (:meth:`CPUVectorEnv.set_repeat <maniskill_torchrl.cpu_vector.CPUVectorEnv.set_repeat>`):
     one round trip per step, and a sub-env whose episode ends mid-repeat is not stepped
     further.
@@ -101,7 +101,7 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
             inference mode, after this env used it raises ``"Inplace update to inference
             tensor outside InferenceMode"`` (PickCube-v1's ``reset`` does): make those calls
             under ``torch.inference_mode()``. A
-            :class:`~maniskill_torchrl.cpu_vector.CPUVectorEnv`'s workers always use it (only
+            :class:`~maniskill_torchrl.cpu_vector.CPUVectorEnv`'s sub-envs always use it (only
             numpy copies leave them), whatever this says.
         batch_size (list of int, optional): ``[num_envs]`` (the default), or ``[]`` for one
             ManiSkill env (``num_envs=1``) as an unbatched TorchRL env: specs and entries without
@@ -156,11 +156,11 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
     ) -> None:
         base = checked_base_env(env, device, from_pixels=from_pixels, pixels_only=pixels_only)
         batch_size = checked_batch_size(batch_size, base.num_envs)
-        # A CPUVectorEnv's workers run inference mode themselves and return numpy copies.
+        # A CPUVectorEnv's sub-envs run inference mode themselves and return numpy copies.
         self._inference = bool(inference_mode) and not isinstance(base, CPUVectorEnv)
         self._sim_mode = torch.inference_mode if self._inference else contextlib.nullcontext
         self._seeds_partial_resets = isinstance(base, CPUVectorEnv)
-        # A CPUVectorEnv wrapped as is can repeat actions in its workers (ActionRepeat's fast path):
+        # A CPUVectorEnv wrapped as is can repeat actions in its sub-envs (ActionRepeat's fast path):
         # each step runs with the repeat asked for it, else with the one the env had when wrapped.
         self._workers = base if env is base and isinstance(base, CPUVectorEnv) else None
         self._plain_repeat = base.repeat if self._workers is not None else 1
@@ -210,7 +210,7 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
 
     # ------------------------------------------------------------------ step, reset
     def _request_worker_repeat(self, repeat: int) -> bool:
-        """Has the next step apply its action up to ``repeat`` times inside the CPU workers.
+        """Has the next step apply its action up to ``repeat`` times inside the CPU sub-envs.
 
         :class:`~maniskill_torchrl.transforms.ActionRepeat`'s fast path. Only a
         :class:`CPUVectorEnv` wrapped as is (with no repeat of its own) can: returns False
@@ -302,7 +302,7 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
             seed = self._seeds.draw()
         elif self._seeds_partial_resets:
             # CPU sub-envs restart from drawn seeds too: reproducible from set_seed, whatever
-            # each worker process's global torch RNG holds (unseeded ManiSkill resets draw from it).
+            # each sub-env's process's global torch RNG holds (unseeded ManiSkill resets draw from it).
             seed = self._seeds.draw() if seed is None else seed
         with self._sim_mode():
             obs, info = self._env.reset(seed=seed, options=options)

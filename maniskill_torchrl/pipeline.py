@@ -34,7 +34,7 @@ def make_env(
       or a Ray collector. ``functools.partial(make_env, env_id, ...)`` pickles into worker
       processes.
     - ``num_envs=N``: ``ManiSkillEnv(env_id, num_envs=N)``, batch ``[N]`` (one GPU simulator
-      with ``sim_backend="gpu"``, one worker process per env on the CPU sim).
+      with ``sim_backend="gpu"``, one process per env on the CPU sim).
 
     Then ``IgnoreTerminations`` (episodes run to the time limit, as ManiSkill's evaluation
     does), ``ActionRepeat(repeat)`` where ``repeat > 1`` (inside the worker: no round trip

@@ -40,9 +40,10 @@ CART = dict(obs_mode="state", max_episode_steps=30)  # random actions fail it af
 PICK = dict(obs_mode="state_dict", max_episode_steps=5)
 
 
-@pytest.fixture(scope="module")
-def cartpole():
-    env = ManiSkillEnv("MS-CartpoleBalance-v1", num_envs=N, **CART)
+@pytest.fixture(scope="module", params=[True, False], ids=["in_process", "workers"])
+def cartpole(request):
+    """Sub-env 0 in this process (the default), or every sub-env in a worker process."""
+    env = ManiSkillEnv("MS-CartpoleBalance-v1", num_envs=N, in_process=request.param, **CART)
     yield env
     env.close()
 
@@ -333,9 +334,31 @@ def test_wrapper_accepts_a_cpu_vector_env(pick_vec):
     assert all(not p.is_alive() for p in vec._vec.processes)
 
 
+def test_a_failure_in_sub_env_0_leaves_the_workers_ready(pick):
+    """Sub-env 0 steps in this process while the workers step theirs: its error is raised once
+    they are done, and the env steps on (no call left pending in gymnasium's AsyncVectorEnv)."""
+    vec = pick.base_env
+    td = pick.reset(seed=0)
+
+    def fail(action):
+        raise RuntimeError("sub-env 0 failed")
+
+    vec._local.step = fail
+    try:
+        with pytest.raises(RuntimeError, match="sub-env 0 failed"):
+            pick.step(td.set("action", torch.zeros(N, 8)))
+    finally:
+        del vec._local.step
+    assert pick.step(td.set("action", torch.zeros(N, 8)))["next", "reward"].shape == (N, 1)
+
+
 def test_bad_input(pick):
     with pytest.raises(ValueError, match="forkserver"):
         CPUVectorEnv("PickCube-v1", 2, context="fork")
+    with pytest.raises(ValueError, match="positive int, got 0"):
+        CPUVectorEnv("PickCube-v1", 0)
+    with pytest.raises(ValueError, match="3 seeds for 2 sub-envs"):
+        pick.base_env.reset(seed=[1, 2, 3])
     td = pick.reset(seed=0)
     with pytest.raises(ValueError, match=r"shape \(2, 7\)"):
         pick.step(td.set("action", torch.zeros(N, 7)))
@@ -349,10 +372,10 @@ def test_dead_worker_raises_instead_of_hanging(pick):
     """Kills a worker of the shared ``pick`` env: the last test that uses it."""
     env = pick
     td = env.reset(seed=0)
-    worker = env._env._vec.processes[1]
+    worker = env._env._vec.processes[-1]  # sub-env N - 1's (sub-env 0 runs in this process)
     os.kill(worker.pid, signal.SIGKILL)
     worker.join(5)
-    with pytest.raises(RuntimeError, match=r"worker\(s\) \[1\] of PickCube-v1 died during step"):
+    with pytest.raises(RuntimeError, match=rf"worker\(s\) of sub-env\(s\) \[{N - 1}\] of PickCube-v1 died during step"):
         env.rand_step(td)
     assert all(not p.is_alive() for p in env._env._vec.processes)
     env.close()  # closing again is harmless

@@ -226,7 +226,8 @@ def test_remote_process_exit_gives_an_error_not_a_hang(cluster, ex) -> None:
 
 
 def test_shutdown_leaves_no_processes(cluster, ex) -> None:
-    """Last test: a batched env (2 env worker processes under the actor), then shutdown + ray.shutdown."""
+    """Last test: a batched env of 2 under the actor (sub-env 0 in the actor, one worker process),
+    then shutdown + ray.shutdown."""
     me = os.getpid()
     policy = ex.make_policy(*ex.env_dims("PushCube-v1"))
     env_fn = functools.partial(ex.make_env, "PushCube-v1", 2, EPISODE)
@@ -240,8 +241,8 @@ def test_shutdown_leaves_no_processes(cluster, ex) -> None:
         cmds = [table[pid][3] for pid, _ in started]
         assert any("ray::" in c or "default_worker" in c for c in cmds), cmds  # the actor is seen
         assert len([c for c in cmds if "raylet" in c]) >= 1, cmds
-        # the env workers: the actor's forkserver and one process per sub-env under it
-        assert sum("multiprocessing.forkserver" in c for c in cmds) >= 3, cmds
+        # the env workers: the actor's forkserver and the worker of sub-env 1 under it
+        assert sum("multiprocessing.forkserver" in c for c in cmds) >= 2, cmds
     finally:
         collector.shutdown()
     ray.shutdown()

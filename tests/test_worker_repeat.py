@@ -55,8 +55,8 @@ class StepSpy:
 
 
 def worker_elapsed(env) -> list[int]:
-    """Each worker's own ManiSkill ``elapsed_steps``: the physics steps it really took."""
-    return [int(e) for e in env.base_env._vec.call("elapsed_steps")]
+    """Each sub-env's own ManiSkill ``elapsed_steps``: the physics steps it really took."""
+    return [int(e) for e in env.base_env.call("elapsed_steps")]
 
 
 def assert_sub_env(td, i, obs, info, what, reward=None, terminated=None, truncated=None):

@@ -1,7 +1,7 @@
 """``maniskill-torchrl demo``: collect with a TorchRL Collector, then report.
 
 ``ManiSkillEnv(env_id, num_envs=N)`` on the CPU sim (one batch-``[N]`` TorchRL env,
-one worker process per env) under ``ActionRepeat -> EpisodeMetrics``
+one process per env) under ``ActionRepeat -> EpisodeMetrics``
 (:func:`maniskill_torchrl.pipeline.make_env`), fed to a
 :class:`torchrl.collectors.Collector`. ``EpisodeMetrics`` comes after ``ActionRepeat``:
 it sees one step per agent decision, so ``episode_len`` counts agent steps, and the

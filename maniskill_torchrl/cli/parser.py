@@ -53,7 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="collect frames from a batched CPU ManiSkill env; write a plot and a video",
         description=(
             "Collects frames with a TorchRL Collector from ManiSkillEnv(env_id, num_envs=--workers) "
-            "on the CPU sim (one worker process per env) under ActionRepeat -> EpisodeMetrics, prints a "
+            "on the CPU sim (one process per env) under ActionRepeat -> EpisodeMetrics, prints a "
             "summary and writes returns.png, rollout.mp4 and summary.json to --out."
         ),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
@@ -66,7 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=3000,
         help="agent steps to collect over all workers (rounded up to whole batches)",
     )
-    demo.add_argument("--workers", type=_positive_int, default=2, help="CPU envs (num_envs), one worker process each")
+    demo.add_argument("--workers", type=_positive_int, default=2, help="CPU envs (num_envs), one process each")
     demo.add_argument("--out", type=Path, default=Path("outputs/demo"), help="output folder")
     demo.add_argument("--seed", type=_seed, default=0, help="seed of envs and policy")
     demo.add_argument(

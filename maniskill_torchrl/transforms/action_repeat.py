@@ -36,8 +36,8 @@ class ActionRepeat(Transform):
       sim, a :class:`~maniskill_torchrl.ManiSkillWrapper` of a
       :class:`~maniskill_torchrl.cpu_vector.CPUVectorEnv`), when this transform
       sits directly on it (no transform before this one), the repeat runs inside
-      the worker processes (ManiSkill's ``ActionRepeatWrapper`` per sub-env):
-      one round trip per outer step, each worker stops at its own episode's end;
+      each sub-env's process (ManiSkill's ``ActionRepeatWrapper`` per sub-env):
+      one round trip per outer step, each sub-env stops at its own episode's end;
     - on a :class:`~torchrl.envs.SerialEnv` / :class:`~torchrl.envs.ParallelEnv`
       the extra inner steps carry TorchRL's ``"_step"`` partial-step mask, so a
       ``ParallelEnv`` of CPU ManiSkill envs spends no physics on finished envs.
@@ -143,7 +143,7 @@ class ActionRepeat(Transform):
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         if self.repeat == 1:
             return next_tensordict
-        if self._delegated:  # the workers repeated it: one outer step already
+        if self._delegated:  # the sub-envs repeated it: one outer step already
             self._delegated = False
             return next_tensordict
         td, self._stash = self._stash, None
