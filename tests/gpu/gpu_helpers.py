@@ -42,7 +42,7 @@ from helpers import assert_same, clone_tree
 
 CUDA = torch.cuda.is_available()
 # A check of the test code itself on the CPU sim (nothing about the GPU path): N > 1 envs run as
-# the library's batched CPU env (one worker process per env), where the tests allow it.
+# the library's batched CPU env (one process per env, sub-env 0 in this one), where the tests allow it.
 CPU_ENVS = 0 if CUDA else int(os.environ.get("MANISKILL_TORCHRL_GPU_TESTS_ON_CPU", "0") or 0)
 ON_CPU = CPU_ENVS > 0
 RUN = CUDA or ON_CPU
