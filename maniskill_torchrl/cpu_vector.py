@@ -103,10 +103,10 @@ class CPUVectorEnv:
             )
         if maniskill_kwargs.pop("num_envs", 1) != 1:
             raise ValueError("num_envs is the second argument of CPUVectorEnv; do not pass it in maniskill_kwargs.")
-        if not isinstance(num_envs, int) or num_envs < 1:
+        if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
             raise ValueError(f"CPUVectorEnv: num_envs must be a positive int, got {num_envs!r}.")
         maniskill_kwargs.setdefault("sim_backend", "physx_cpu")
-        self.num_envs = num_envs
+        self.num_envs = int(num_envs)
         self.device = torch.device("cpu")
         self._first = 1 if in_process else 0  # the sub-env index of the first worker
         self._vec: AsyncVectorEnv | None = None

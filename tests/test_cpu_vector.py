@@ -334,6 +334,36 @@ def test_wrapper_accepts_a_cpu_vector_env(pick_vec):
     assert all(not p.is_alive() for p in vec._vec.processes)
 
 
+def test_one_sub_env_runs_in_this_process_alone():
+    """``CPUVectorEnv(id, 1)`` starts no worker: its one sub-env is this process's, and equals a raw env."""
+
+    def assert_same(got, want, what):
+        got = dict(_leaves(got))
+        want = {k: v for k, v in _leaves(want) if isinstance(v, torch.Tensor)}
+        assert set(want) <= set(got), (what, sorted(want), sorted(got))
+        for key, w in want.items():
+            assert got[key].dtype == w.dtype and torch.equal(got[key], w), (what, key)
+
+    vec = CPUVectorEnv("PickCube-v1", 1, **PICK)
+    raw = make_gym_env("PickCube-v1", **PICK)
+    try:
+        assert vec._vec is None
+        obs, info = vec.reset(seed=4)
+        want_obs, want_info = _clone(raw.reset(seed=4))
+        assert_same(obs, want_obs, "reset obs")
+        assert_same(info, want_info, "reset info")
+        for t, a in enumerate(random_actions(gym.spaces.Box(-1, 1, (1, 8)), 3, seed=2)):
+            got = vec.step(a)
+            want = _clone(raw.step(a))
+            assert_same(got[0], want[0], f"step {t} obs")
+            assert_same(got[4], want[4], f"step {t} info")
+            for i, what in ((1, "reward"), (2, "terminated"), (3, "truncated")):
+                assert got[i].dtype == want[i].dtype and torch.equal(got[i], want[i]), (t, what)
+    finally:
+        vec.close()
+        raw.close()
+
+
 def test_a_failure_in_sub_env_0_leaves_the_workers_ready(pick):
     """Sub-env 0 steps in this process while the workers step theirs: its error is raised once
     they are done, and the env steps on (no call left pending in gymnasium's AsyncVectorEnv)."""
