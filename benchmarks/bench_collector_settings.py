@@ -18,7 +18,8 @@ in the gym workers with ``--repeat 2``):
 - ``parallel[:<options>]``: ``Collector(ParallelEnv(N, ManiSkillEnv + CPUUnbatch))`` with
   :class:`maniskill_torchrl.parallel.ParallelEnv` (``torchrl``: TorchRL's own, started with
   ``"spawn"``), the options as above (``noinf`` in the workers' envs), ``unb`` (the workers'
-  envs ``ManiSkillEnv(id, batch_size=[])``, no ``CPUUnbatch``).
+  envs ``ManiSkillEnv(id, batch_size=[])``, no ``CPUUnbatch``), ``sleep`` / ``spin`` (the parent's
+  wait, instead of ``"auto"``).
 
 Run: ``python benchmarks/bench_collector_settings.py [--n 2] [--repeat 1] [--rounds 16]
 [--pipelines gym batched batched:rp+dev batched:rp+dev+notraj]``.
@@ -77,7 +78,7 @@ def _parallel(n: int, repeat: int, options: list[str]):
     else:
         from maniskill_torchrl.parallel import ParallelEnv
 
-        kwargs = {}
+        kwargs = {"wait": w for w in ("sleep", "spin") if w in opts}
     env = ParallelEnv(n, functools.partial(_worker_env, repeat, **env_options(opts)), **kwargs)
     env.set_seed(SEED)
     policy, kwargs = collector_options(env, opts)
