@@ -78,7 +78,8 @@ def _parallel(n: int, repeat: int, options: list[str]):
     else:
         from maniskill_torchrl.parallel import ParallelEnv
 
-        kwargs = {"wait": w for w in ("sleep", "spin") if w in opts}
+        waits = [w for w in ("sleep", "spin") if w in opts]
+        kwargs = {"wait": waits[0]} if waits else {}
     env = ParallelEnv(n, functools.partial(_worker_env, repeat, **env_options(opts)), **kwargs)
     env.set_seed(SEED)
     policy, kwargs = collector_options(env, opts)
