@@ -156,27 +156,44 @@ class CPUVectorEnv:
         step = join_rows(self._row, None if self._vec is None else self._vec.observations)
         return step[OBS], step[REWARD], step[TERMINATED], step[TRUNCATED], step[INFO]
 
-    def step(
-        self, action: torch.Tensor | Mapping[str, torch.Tensor]
-    ) -> tuple[Any, torch.Tensor, torch.Tensor, torch.Tensor, dict]:
-        vec, local = self._vec, self._local
-        action = to_numpy(action)
-        if local is not None:
-            first, action = split_first(action)
+    def _together(self, call: str, send: Any, here: Any, collect: Any) -> tuple[Any, Any]:
+        """``send(vec)`` to the workers, ``here()`` on sub-env 0 while they work, then
+        ``collect(vec)``; returns (``here``'s result, ``collect``'s). ``send=None``: no worker
+        takes part; ``here=None``: sub-env 0 does not. The workers' results are collected even
+        when sub-env 0 raises, so that no call is left pending; a dead worker is reported."""
+        vec = self._vec if send is not None else None
         if vec is not None:
             try:
-                vec.step_async(action)
+                send(vec)
             except (EOFError, OSError) as err:
-                raise self._worker_died("step") from err
+                raise self._worker_died(call) from err
+        mine = theirs = None
         try:
-            if local is not None:  # while the workers step theirs
-                write_row(self._row, local.step(first)[0])
+            if here is not None and self._local is not None:
+                mine = here()
         finally:
             if vec is not None:
                 try:
-                    vec.step_wait()
+                    theirs = collect(vec)
                 except (EOFError, OSError) as err:
-                    raise self._worker_died("step") from err
+                    raise self._worker_died(call) from err
+        return mine, theirs
+
+    def step(
+        self, action: torch.Tensor | Mapping[str, torch.Tensor]
+    ) -> tuple[Any, torch.Tensor, torch.Tensor, torch.Tensor, dict]:
+        action = to_numpy(action)
+        first = None
+        if self._local is not None:
+            first, action = split_first(action)
+        mine, _ = self._together(
+            "step",
+            lambda vec: vec.step_async(action),
+            lambda: self._local.step(first)[0],  # while the workers step theirs
+            lambda vec: vec.step_wait(),
+        )
+        if mine is not None:
+            write_row(self._row, mine)
         return self._read()
 
     def reset(self, *, seed: int | list[int] | None = None, options: dict | None = None) -> tuple[Any, dict]:
@@ -187,25 +204,20 @@ class CPUVectorEnv:
             mask[:] = False
             mask[torch.as_tensor(env_idx, device="cpu").numpy()] = True
         seeds = self._seeds(seed, mask)
-        vec, workers = self._vec, mask[self._first :]
-        waiting = vec is not None and bool(workers.any())
-        if waiting:
-            worker_options = dict(options)
-            if not workers.all():
-                worker_options["reset_mask"] = workers
-            try:
-                vec.reset_async(seed=seeds[self._first :], options=worker_options or None)
-            except (EOFError, OSError) as err:
-                raise self._worker_died("reset") from err
-        try:
-            if self._local is not None and mask[0]:
-                write_row(self._row, self._local.reset(seed=seeds[0], options=options or None)[0])
-        finally:
-            if waiting:
-                try:
-                    vec.reset_wait()
-                except (EOFError, OSError) as err:
-                    raise self._worker_died("reset") from err
+        workers = mask[self._first :]
+        worker_options = dict(options)
+        if not workers.all():
+            worker_options["reset_mask"] = workers
+        mine, _ = self._together(
+            "reset",
+            (lambda vec: vec.reset_async(seed=seeds[self._first :], options=worker_options or None))
+            if workers.any()
+            else None,
+            (lambda: self._local.reset(seed=seeds[0], options=options or None)[0]) if mask[0] else None,
+            lambda vec: vec.reset_wait(),
+        )
+        if mine is not None:
+            write_row(self._row, mine)
         obs, _, _, _, info = self._read()
         return obs, info
 
@@ -223,23 +235,15 @@ class CPUVectorEnv:
     def call(self, name: str, *args: Any, **kwargs: Any) -> tuple[Any, ...]:
         """Each sub-env's method ``name`` called with these arguments (its value, for an attribute),
         in sub-env order, as gymnasium's ``AsyncVectorEnv.call``."""
-        vec, results = self._vec, []
-        if vec is not None:
-            try:
-                vec.call_async(name, *args, **kwargs)
-            except (EOFError, OSError) as err:
-                raise self._worker_died(name) from err
-        try:
-            if self._local is not None:
-                attr = self._local.get_wrapper_attr(name)
-                results.append(attr(*args, **kwargs) if callable(attr) else attr)
-        finally:
-            if vec is not None:
-                try:
-                    results.extend(vec.call_wait())
-                except (EOFError, OSError) as err:
-                    raise self._worker_died(name) from err
-        return tuple(results)
+
+        def here() -> Any:
+            attr = self._local.get_wrapper_attr(name)
+            return attr(*args, **kwargs) if callable(attr) else attr
+
+        mine, theirs = self._together(
+            name, lambda vec: vec.call_async(name, *args, **kwargs), here, lambda vec: vec.call_wait()
+        )
+        return ((mine,) if self._local is not None else ()) + (tuple(theirs) if theirs is not None else ())
 
     @property
     def repeat(self) -> int:
