@@ -22,7 +22,8 @@ SEED = 0
 
 
 def _maniskill_kwargs() -> dict:
-    return {"obs_mode": "state", "max_episode_steps": EPISODE}
+    # the CPU sim for every contender: with CUDA, ManiSkillEnv(num_envs>1) would pick the GPU sim
+    return {"obs_mode": "state", "max_episode_steps": EPISODE, "sim_backend": "physx_cpu"}
 
 
 def _quiet() -> None:

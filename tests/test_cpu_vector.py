@@ -36,8 +36,8 @@ from maniskill_torchrl import (
 pytestmark = pytest.mark.usefixtures("torch_single_thread")
 
 N = 2
-CART = dict(obs_mode="state", max_episode_steps=30)  # random actions fail it after ~20 steps
-PICK = dict(obs_mode="state_dict", max_episode_steps=5)
+CART = dict(obs_mode="state", max_episode_steps=30, sim_backend="cpu")  # random actions fail it after ~20 steps
+PICK = dict(obs_mode="state_dict", max_episode_steps=5, sim_backend="cpu")
 
 
 @pytest.fixture(scope="module", params=[True, False], ids=["in_process", "workers"])
@@ -102,7 +102,9 @@ def no_guard_script(request: pytest.FixtureRequest, tmp_path_factory: pytest.Tem
         return
     folder = tmp_path_factory.mktemp("no_guard")
     script = folder / "no_guard.py"
-    script.write_text('from maniskill_torchrl import ManiSkillEnv\nManiSkillEnv("PushCube-v1", num_envs=2)\n')
+    script.write_text(
+        'from maniskill_torchrl import ManiSkillEnv\nManiSkillEnv("PushCube-v1", num_envs=2, sim_backend="cpu")\n'
+    )
     handle = start([sys.executable, str(script)], cwd=folder)
     yield handle
     handle.kill()
@@ -283,6 +285,7 @@ def test_rgb_observations_and_render():
     env = ManiSkillEnv(
         "PickCube-v1",
         num_envs=N,
+        sim_backend="cpu",
         obs_mode="rgb",
         from_pixels=True,
         sensor_configs=dict(width=32, height=32),
@@ -312,7 +315,7 @@ def test_rgb_observations_and_render():
 
 
 def test_dict_actions():
-    env = ManiSkillEnv("TwoRobotPickCube-v1", num_envs=N, obs_mode="state", max_episode_steps=3)
+    env = ManiSkillEnv("TwoRobotPickCube-v1", num_envs=N, sim_backend="cpu", obs_mode="state", max_episode_steps=3)
     try:
         td = env.rollout(4, break_when_any_done=False)
         assert td.shape == (N, 4)

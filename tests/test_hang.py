@@ -110,7 +110,7 @@ if __name__ == "__main__":
     from maniskill_torchrl import ManiSkillEnv
 
     def batched():
-        env = ManiSkillEnv("PickCube-v1", num_envs=2, obs_mode="state", max_episode_steps=10)
+        env = ManiSkillEnv("PickCube-v1", num_envs=2, sim_backend="cpu", obs_mode="state", max_episode_steps=10)
         try:
             env.set_seed(0)
             td = env.rollout(3)

@@ -25,7 +25,7 @@ from maniskill_torchrl import ActionRepeat, ManiSkillEnv
 pytestmark = pytest.mark.usefixtures("torch_single_thread")
 
 N, REPEAT = 2, 3
-PUSH = dict(obs_mode="state", max_episode_steps=5)
+PUSH = dict(obs_mode="state", max_episode_steps=5, sim_backend="cpu")
 ACTIONS = random_actions(gym.spaces.Box(-1, 1, (N, 8)), 8, seed=2)
 
 
