@@ -9,6 +9,8 @@ each running a TorchRL ``Collector`` over one env of this library:
 - ``--num-envs N``: ``ManiSkillEnv(env_id, num_envs=N) -> EpisodeMetrics``, one batched env
   (on the CPU sim, one process per env: sub-env 0 in the actor, N - 1 workers under it).
 
+Both stay on the CPU sim (``sim_backend="physx_cpu"``) on nodes with a GPU too.
+
 The policy is a small MLP actor (``TensorDictModule``). Between batches its weights are
 changed here (a random perturbation; a learner would take an optimiser step) and pushed to
 every remote collector with ``collector.update_policy_weights_()``. The policy also writes a
@@ -60,7 +62,8 @@ def make_env(
     logging.getLogger("mani_skill").setLevel(logging.ERROR)
     from maniskill_torchrl.pipeline import make_env as make_pipeline
 
-    kwargs = {"obs_mode": "state"}
+    # The CPU sim on every node: with CUDA there, sim_backend="auto" would pick the GPU sim for N > 1.
+    kwargs = {"obs_mode": "state", "sim_backend": "physx_cpu"}
     if max_episode_steps is not None:
         kwargs["max_episode_steps"] = max_episode_steps
     # num_envs=None: ManiSkillEnv(batch_size=[]) -> EpisodeMetrics; N: ManiSkillEnv(num_envs=N) -> EpisodeMetrics
