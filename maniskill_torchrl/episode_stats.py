@@ -12,12 +12,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
-from tensordict import TensorDict
+from tensordict import TensorDict, TensorDictBase
 
 from maniskill_torchrl._private import new_tensordict
-from maniskill_torchrl.numpy_sum import RunningNumpySum
+from maniskill_torchrl.numpy_sum import NumpyOrderSums
 
-__all__ = ["EPISODE_FIELDS", "EpisodeField", "EpisodeStats", "episode_fields"]
+__all__ = ["EPISODE_FIELDS", "SUMMATIONS", "EpisodeField", "EpisodeStats", "episode_fields"]
 
 
 @dataclass(frozen=True)
@@ -54,35 +54,52 @@ def episode_fields(has_success: bool, has_fail: bool) -> tuple[EpisodeField, ...
     return tuple(f for f in EPISODE_FIELDS if f.source in sources)
 
 
+SUMMATIONS = ("numpy", "running")
+
+
 class EpisodeStats:
-    """Running per-env episode metrics, reset per env.
+    """Per-env episode metrics, one step at a time, with the running state passed in.
 
-    ``update`` takes one step's reward (and ``success`` / ``fail`` where the
-    task reports them) for every env and returns the ``"episode"`` entries of
-    :data:`EPISODE_FIELDS`:
+    :meth:`update` takes the previous step's ``"episode"`` TensorDict (None at an episode's
+    start), one step's reward (and ``success`` / ``fail`` where the task reports them) for every
+    env, and returns the new ``"episode"`` entries of :data:`EPISODE_FIELDS`:
 
-    - ``return``: the sum of the episode's rewards, float32, summed as
-      ``numpy.sum`` does (bit for bit with ManiSkill's ``CPUGymWrapper``);
+    - ``return``: the sum of the episode's rewards, float32;
     - ``episode_len``: steps since the env's last reset (int64);
     - ``reward``: ``return / episode_len``;
     - ``success_once`` / ``fail_once``: whether success / fail was ever reported;
     - ``success_at_end`` / ``fail_at_end``: the value at this step.
 
+    The caller keeps the state (the returned TensorDict): :class:`EpisodeMetrics
+    <maniskill_torchrl.transforms.EpisodeMetrics>` in the env's tensordicts, as TorchRL's
+    ``StepCounter`` does, the gym shim in its wrapper.
+
+    Two summations of ``return``, one per anchor:
+
+    - ``"numpy"``: bit for bit ``numpy.sum`` of the episode's rewards, as ManiSkill's
+      ``CPUGymWrapper(record_metrics=True)`` reports it. It keeps each env's rewards by position
+      (:class:`~maniskill_torchrl.numpy_sum.NumpyOrderSums`) and costs one numpy reduction per env
+      per step on the host. Default on the CPU.
+    - ``"running"``: ``return + reward`` in float32, as ``ManiSkillVectorEnv(record_metrics=True)``
+      keeps it on the GPU sim: a few tensor ops per step whatever the batch and the episode
+      lengths, and no host sync. Default on other devices.
+
     Args:
         batch_size: the env batch.
         device: where the statistics live (the env's device).
         has_success, has_fail: whether the task reports ``success`` / ``fail``.
+        summation: ``"numpy"``, ``"running"`` or None (by device, as above).
 
     Examples:
         >>> import torch
         >>> from maniskill_torchrl.episode_stats import EpisodeStats
         >>> stats = EpisodeStats([2], torch.device("cpu"), has_success=True, has_fail=False)
-        >>> ep = stats.update(torch.tensor([1.0, 2.0]), success=torch.tensor([False, True]))
-        >>> ep = stats.update(torch.tensor([1.0, 2.0]), success=torch.tensor([False, False]))
+        >>> ep = stats.update(None, torch.tensor([1.0, 2.0]), success=torch.tensor([False, True]))
+        >>> ep = stats.update(ep, torch.tensor([1.0, 2.0]), success=torch.tensor([False, False]))
         >>> ep["return"].tolist(), ep["success_once"].tolist(), ep["success_at_end"].tolist()
         ([2.0, 4.0], [False, True], [False, False])
-        >>> stats.reset(torch.tensor([False, True]))
-        >>> stats.update(torch.tensor([1.0, 2.0]), success=torch.tensor([False, False]))["episode_len"].tolist()
+        >>> ep = stats.restart(ep, torch.tensor([False, True]))
+        >>> stats.update(ep, torch.tensor([1.0, 2.0]), success=torch.tensor([False, False]))["episode_len"].tolist()
         [3, 1]
     """
 
@@ -93,32 +110,20 @@ class EpisodeStats:
         *,
         has_success: bool = True,
         has_fail: bool = True,
+        summation: str | None = None,
     ) -> None:
         self.batch_size = torch.Size(batch_size)
         self.device = torch.device(device) if device is not None else torch.device("cpu")
         self.has_success = has_success
         self.has_fail = has_fail
         self.fields = episode_fields(has_success, has_fail)
-        self._sum = RunningNumpySum(self.batch_size, self.device)
-        self._zero_state()
-
-    def _zero_state(self) -> None:
-        b, dev = self.batch_size, self.device
-        self._return = torch.zeros(b, dtype=torch.float32, device=dev)
-        self._len = torch.zeros(b, dtype=torch.int64, device=dev)
-        self._once = {f.source: torch.zeros(b, dtype=torch.bool, device=dev) for f in self.fields if f.kind == "once"}
-
-    def reset(self, mask: torch.Tensor | None = None) -> None:
-        """Starts a new episode for the envs in ``mask`` (all envs if ``None``)."""
-        # Out of place: earlier "episode" outputs share these tensors.
-        if mask is None:
-            self._zero_state()
-            self._sum.reset()
-            return
-        mask = mask.reshape(self.batch_size)
-        self._return = self._return.masked_fill(mask, 0)
-        self._len = self._len.masked_fill(mask, 0)
-        self._once = {k: v.masked_fill(mask, False) for k, v in self._once.items()}
+        if summation is None:
+            summation = "numpy" if self.device.type == "cpu" else "running"
+        if summation not in SUMMATIONS:
+            raise ValueError(f"summation={summation!r}: use one of {SUMMATIONS} (or None: by device).")
+        #: ``"numpy"`` or ``"running"`` (see the class docstring)
+        self.summation = summation
+        self._numpy = NumpyOrderSums(self.batch_size) if summation == "numpy" else None
 
     def zeros(self) -> TensorDict:
         """The ``"episode"`` TensorDict of a fresh episode (all zeros), as :meth:`update` lays it out."""
@@ -126,19 +131,36 @@ class EpisodeStats:
         out = {f.name: torch.zeros(b, dtype=f.dtype, device=dev) for f in self.fields}
         return new_tensordict(out, batch_size=b, device=dev)
 
+    def restart(self, previous: TensorDictBase, mask: torch.Tensor) -> TensorDictBase:
+        """``previous`` with the envs in ``mask`` (a bool tensor shaped as the batch) back at zero."""
+        mask = mask.reshape(self.batch_size)
+        # Out of place: ``previous`` may be a step the caller keeps.
+        return previous.apply(lambda value: value.masked_fill(mask, 0))
+
     def update(
         self,
+        previous: TensorDictBase | None,
         reward: torch.Tensor,
         success: torch.Tensor | None = None,
         fail: torch.Tensor | None = None,
     ) -> TensorDict:
-        """Adds one step for every env and returns the ``"episode"`` TensorDict."""
+        """The ``"episode"`` TensorDict after one more step of every env.
+
+        ``previous`` is the last step's (or :meth:`restart`'s) output, None for a fresh episode of
+        every env. Nothing is written into ``previous``.
+        """
         b = self.batch_size
-        n = self._len
-        self._return = total = self._sum.add(self._return, reward.reshape(b).to(torch.float32), n)
-        n = self._len = n + 1
+        if previous is None:
+            previous = self.zeros()
+        n = previous.get("episode_len")
+        reward = reward.reshape(b)
+        if self._numpy is not None:
+            total = self._numpy.add(reward, n)
+        else:
+            # ManiSkillVectorEnv's ``returns += rew`` into float32 (rew promoted first, as torch does).
+            total = torch.add(previous.get("return"), reward).to(torch.float32)
+        n = n + 1
         flags = {"success": success, "fail": fail}
-        once = self._once
         out = {}
         for f in self.fields:
             kind = f.kind
@@ -149,8 +171,7 @@ class EpisodeStats:
             elif kind == "mean":
                 out[f.name] = total / n
             elif kind == "once":
-                once[f.source] = once[f.source] | flags[f.source].reshape(b)
-                out[f.name] = once[f.source]
+                out[f.name] = previous.get(f.name) | flags[f.source].reshape(b)
             else:  # "at_end"
                 out[f.name] = flags[f.source].reshape(b)
         return new_tensordict(out, batch_size=b, device=self.device)

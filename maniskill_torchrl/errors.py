@@ -1,6 +1,7 @@
-"""What :class:`~maniskill_torchrl.ManiSkillWrapper` refuses, and how it says so: its arguments,
-unknown info keys, a step without its action, a call after ``close()`` (where TorchRL or a closed
-ManiSkill sim would fail with unrelated errors).
+"""What :class:`~maniskill_torchrl.ManiSkillWrapper` refuses, and how it says so: its arguments
+(a device other than the sim's, ``frame_skip``), envs it cannot serve (auto-resetting wrappers,
+a reconfiguration that partial resets cannot do), unknown info keys, a step without its action,
+a call after ``close()`` (where TorchRL or a closed ManiSkill sim would fail with unrelated errors).
 
 Private to the library (not exported from :mod:`maniskill_torchrl`); no TorchRL import.
 """
@@ -12,12 +13,18 @@ from typing import Any
 
 import torch
 
-from maniskill_torchrl._maniskill import maniskill_base_env
+from maniskill_torchrl._maniskill import (
+    auto_resetting_wrapper,
+    canonical_device,
+    ignores_terminations,
+    maniskill_base_env,
+)
 from maniskill_torchrl.cpu_vector import CPUVectorEnv
 
 __all__ = [
     "checked_base_env",
     "checked_batch_size",
+    "check_frame_skip",
     "check_info_keys",
     "MissingActionError",
     "action_error",
@@ -40,12 +47,31 @@ def checked_base_env(env: Any, device: Any, *, from_pixels: bool, pixels_only: b
             "gym.make('<Task>-v1', ...) after `import mani_skill.envs`, or CPUVectorEnv('<Task>-v1', N) "
             "for N CPU-sim envs; for other gym envs use torchrl.envs.GymWrapper."
         )
-    env_device = torch.device(base.device)
-    if device is not None and torch.device(device) != env_device:
+    env_device = canonical_device(base.device)
+    if device is not None and canonical_device(device) != env_device:
         raise ValueError(
             f"device={device} differs from the ManiSkill env's device {env_device}. "
-            "Make the env on the device you want (sim_backend='gpu' for CUDA) or omit device: "
-            "this wrapper does not copy data between devices."
+            "Make the env on the device you want (sim_backend='gpu' or 'physx_cuda:<index>' for CUDA) "
+            "or omit device: this wrapper does not copy data between devices."
+        )
+    resetter = auto_resetting_wrapper(env)
+    if resetter is not None:
+        raise ValueError(
+            f"{resetter} resets done envs inside its step and returns the next episode's first "
+            "observation in place of the last one, which TorchRL would then reset a second time: the "
+            "final observations would be lost. TorchRL resets done envs itself (partial resets): wrap "
+            "the ManiSkill env without it, ManiSkillWrapper(gym.make(...)), or "
+            "ManiSkillVectorEnv(env, auto_reset=False), or use ManiSkillEnv(...)."
+        )
+    freq = getattr(base, "reconfiguration_freq", 0) or 0
+    if base.num_envs > 1 and freq and not isinstance(base, CPUVectorEnv) and not ignores_terminations(env):
+        raise ValueError(
+            f"reconfiguration_freq={freq} with num_envs={base.num_envs}: ManiSkill cannot reconfigure "
+            "some of its envs only, and TorchRL resets each done env on its own (partial resets), "
+            "which would fail mid-run ('Cannot do a partial reset and reconfigure the environment'). "
+            "Make the env with reconfiguration_freq=0, or, for evaluation episodes that all run to the "
+            "time limit and reset together, wrap it in ManiSkillVectorEnv(env, auto_reset=False, "
+            "ignore_terminations=True) first (ManiSkillVectorEnv has the same rule)."
         )
     if pixels_only and not from_pixels:
         raise ValueError("pixels_only=True needs from_pixels=True.")
@@ -71,6 +97,17 @@ def checked_batch_size(batch_size: Any, num_envs: int) -> torch.Size:
         f"(batch_size [{num_envs}], ManiSkill's num_envs), or pass batch_size=[] with num_envs=1 for one "
         "unbatched env (batch_size [], what ParallelEnv / SerialEnv stack)."
     )
+
+
+def check_frame_skip(frame_skip: Any) -> None:
+    """Refuses ``frame_skip > 1``: TorchRL's frame skip would sum rewards past an episode's end."""
+    if frame_skip is not None and frame_skip != 1:
+        raise ValueError(
+            f"frame_skip={frame_skip} is not supported: TorchRL's FrameSkipTransform keeps stepping an "
+            "env after its episode ends. Use TransformedEnv(env, ActionRepeat(k)) from "
+            "maniskill_torchrl.transforms, ManiSkill's ActionRepeatWrapper semantics: rewards summed "
+            "over the steps each env really took, its last observation kept."
+        )
 
 
 def check_info_keys(info_keys: list[str], infos: Mapping[str, Any], base: Any) -> None:

@@ -12,7 +12,7 @@ from torchrl.data.utils import DEVICE_TYPING
 
 from maniskill_torchrl._maniskill import enable_physx_gpu, registered_env_ids, similar_env_ids
 from maniskill_torchrl.cpu_vector import CPUVectorEnv
-from maniskill_torchrl.errors import checked_batch_size
+from maniskill_torchrl.errors import check_frame_skip, checked_batch_size
 from maniskill_torchrl.maniskill_wrapper import ManiSkillWrapper
 
 __all__ = ["ManiSkillEnv"]
@@ -90,6 +90,7 @@ class ManiSkillEnv(ManiSkillWrapper):
         if not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive int, got {num_envs!r}.")
         checked_batch_size(batch_size, num_envs)  # before any process or sim is started
+        check_frame_skip(maniskill_kwargs.pop("frame_skip", None))
         if from_pixels:
             maniskill_kwargs.setdefault("render_mode", "rgb_array")
         self._env_id = env_id

@@ -28,7 +28,7 @@ __all__ = ["ManiSkillLayout"]
 class ManiSkillLayout:
     """The TensorDict layout of :class:`~maniskill_torchrl.ManiSkillWrapper` (mixed into it).
 
-    Reads the host's ``_env``, ``_inference``, ``batch_size``, ``device``, ``action_keys`` and
+    Reads the host's ``_env``, ``_copies``, ``batch_size``, ``device``, ``action_keys`` and
     ``render()``; sets the specs and, for ``_step``'s action check, ``_action_names`` (the
     agents of a Dict action space, else None) and ``_action_shapes``.
 
@@ -45,9 +45,10 @@ class ManiSkillLayout:
         self._requested_info_keys = info_keys
         self._unbatched = unbatched
         # How one ManiSkill tensor becomes an entry. Infos are always cloned: they may alias
-        # ManiSkill's buffers (elapsed_steps is updated in place). Observations are cloned when
-        # made under inference mode, so that the user gets normal tensors.
-        self._obs_leaf = _LEAVES[unbatched, self._inference]
+        # ManiSkill's buffers (elapsed_steps is updated in place). Observations are cloned where
+        # ManiSkill may write into them later (the GPU sim, sapien_cuda pictures) or made them
+        # under inference mode (the user gets normal tensors).
+        self._obs_leaf = _LEAVES[unbatched, self._copies]
         self._info_leaf = _LEAVES[unbatched, True]
 
     def _make_specs(self, env: Any) -> None:

@@ -1,8 +1,9 @@
 """:class:`ManiSkillWrapper`: a ManiSkill 3 env made with ``gym.make`` as a native TorchRL env.
 
 ManiSkill returns batched torch tensors (``[num_envs, ...]``) on the simulation
-device; :class:`ManiSkillWrapper` puts them into TensorDicts as they are: no
-numpy round trips, no host copies, one TensorDict built per step. Its specs and
+device; :class:`ManiSkillWrapper` puts them into TensorDicts: no numpy round trips, no
+host copies, one TensorDict built per step, and a device copy only of what ManiSkill
+would overwrite later (the GPU sim's buffers). Its specs and
 the entries of each step come from its mixin :class:`~maniskill_torchrl.maniskill_layout.ManiSkillLayout`
 (``maniskill_layout.py``); :class:`~maniskill_torchrl.ManiSkillEnv` (``maniskill_env.py``)
 builds the ManiSkill env too.
@@ -20,9 +21,10 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.data.utils import DEVICE_TYPING
 
+from maniskill_torchrl._maniskill import canonical_device, reuses_buffers
 from maniskill_torchrl._private import EnvWrapper, classproperty, new_tensordict
 from maniskill_torchrl.cpu_vector import CPUVectorEnv
-from maniskill_torchrl.errors import ClosedEnv, checked_base_env, checked_batch_size
+from maniskill_torchrl.errors import ClosedEnv, check_frame_skip, checked_base_env, checked_batch_size
 from maniskill_torchrl.maniskill_layout import ManiSkillLayout
 from maniskill_torchrl.seeding import ResetSeeds
 
@@ -38,7 +40,7 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
     """A TorchRL env around a ManiSkill 3 env made with ``gym.make``.
 
     The batch is ManiSkill's ``num_envs`` and the device is the simulation's
-    device (``cpu`` for the CPU sim, ``cuda`` for the GPU sim). Each step
+    device (``cpu`` for the CPU sim, ``cuda:<index>`` for the GPU sim). Each step
     builds one TensorDict from ManiSkill's own tensors:
 
     - a Box observation space goes to ``"observation"``; a Dict observation
@@ -53,6 +55,16 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
       batched envs keep them. They are learnt from ``env.unwrapped.get_info()``
       without stepping or resetting the env. An info key that collides with an
       observation key is stored as ``"info_<key>"``.
+
+    Nothing this env returns is written into later by the simulator. Where ManiSkill hands out
+    buffers that it overwrites (the GPU sim: camera pictures, hidden actors' poses; the CPU sim
+    rendering with ``render_backend="sapien_cuda"``: camera pictures), observations,
+    ``"pixels"``, rewards and done flags are copied on their device; infos always are. The CPU
+    sim rendering on the CPU returns fresh tensors, used as they are.
+
+    Auto-resetting envs are refused (``ManiSkillVectorEnv(auto_reset=True)``, gymnasium's
+    ``Autoreset``): TorchRL resets done envs itself, and an env that already did would lose each
+    episode's final observation. ``ManiSkillVectorEnv(env, auto_reset=False)`` is fine.
 
     Seeding: after :meth:`set_seed(s) <set_seed>` the next full reset calls
     ManiSkill's ``reset(seed=s)``; every later full reset is seeded with the next
@@ -83,7 +95,8 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
             wrapped in further gym wrappers.
 
     Keyword Args:
-        device: must be the env's device if given (no silent copies).
+        device: must be the env's device if given (no silent copies). ``"cuda"`` and
+            ``"cuda:0"`` name the same device on a machine whose current CUDA device is 0.
         from_pixels (bool): add a ``"pixels"`` entry rendered with
             ``env.render()`` at every reset and step; the env must have been
             made with ``render_mode="rgb_array"``.
@@ -154,11 +167,15 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
         batch_size: Sequence[int] | None = None,
         **kwargs: Any,
     ) -> None:
+        check_frame_skip(kwargs.get("frame_skip"))
         base = checked_base_env(env, device, from_pixels=from_pixels, pixels_only=pixels_only)
         batch_size = checked_batch_size(batch_size, base.num_envs)
         # A CPUVectorEnv's sub-envs run inference mode themselves and return numpy copies.
         self._inference = bool(inference_mode) and not isinstance(base, CPUVectorEnv)
         self._sim_mode = torch.inference_mode if self._inference else contextlib.nullcontext
+        # What leaves this env is copied where ManiSkill may overwrite it later (the GPU sim's
+        # buffers, sapien_cuda pictures) or made it under inference mode; nowhere else.
+        self._copies = self._inference or reuses_buffers(base)
         self._seeds_partial_resets = isinstance(base, CPUVectorEnv)
         # A CPUVectorEnv wrapped as is can repeat actions in its sub-envs (ActionRepeat's fast path):
         # each step runs with the repeat asked for it, else with the one the env had when wrapped.
@@ -171,7 +188,7 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
         self._seeds = ResetSeeds()
         super().__init__(
             env=env,
-            device=torch.device(base.device),
+            device=canonical_device(base.device),
             batch_size=batch_size,
             allow_done_after_reset=allow_done_after_reset,
             **kwargs,
@@ -250,7 +267,7 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
         with self._sim_mode():
             obs, reward, terminated, truncated, info = self._env.step(action)
         source = self._to_tensordict(obs, info)
-        if self._inference:  # normal tensors for the user (done below is computed out here)
+        if self._copies:  # done below is computed out here: a new tensor
             reward, terminated, truncated = reward.clone(), terminated.clone(), truncated.clone()
         # ManiSkill gives [B] tensors: unsqueeze is the cheapest way to [B, 1] (view(shape) costs
         # twice as much on the CPU sim, where each op counts), and an unbatched env's [1] entries
@@ -291,11 +308,13 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
         options = dict(options) if options else {}
         reset = tensordict.get("_reset", None) if tensordict is not None else None
         if reset is not None:
-            reset = reset.reshape(self.batch_size)
-            if not reset.any():
+            # The one host sync of a partial reset on the GPU sim: which envs. None, all or some
+            # of them is then read off the index's host-side shape.
+            env_idx = reset.reshape(-1).nonzero().squeeze(-1)
+            if not env_idx.numel():
                 return tensordict.exclude("_reset")
-            if not reset.all():
-                options["env_idx"] = reset.nonzero().squeeze(-1)
+            if env_idx.numel() < reset.numel():
+                options["env_idx"] = env_idx
         if "env_idx" not in options:
             if seed is not None:
                 self._seeds.set(seed)
@@ -314,12 +333,11 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
 
     # -------------------------------------------------------------- misc
     def render(self) -> Any:
-        """ManiSkill's ``render()`` (batched ``[B, H, W, 3]`` uint8 tensor for ``rgb_array``)."""
-        if not self._inference:
-            return self._env.render()
-        with torch.inference_mode():
+        """ManiSkill's ``render()`` (batched ``[B, H, W, 3]`` uint8 tensor for ``rgb_array``), a copy
+        where ManiSkill renders into a buffer that its next render overwrites."""
+        with self._sim_mode():
             frame = self._env.render()
-        return frame.clone() if isinstance(frame, torch.Tensor) else frame
+        return frame.clone() if self._copies and isinstance(frame, torch.Tensor) else frame
 
     def close(self, *, raise_if_closed: bool = True) -> None:
         env = self.__dict__.get("_env")

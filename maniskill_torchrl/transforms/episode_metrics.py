@@ -7,7 +7,7 @@ from tensordict import TensorDictBase
 from torchrl.data import Categorical, Composite, TensorSpec, Unbounded
 from torchrl.envs import Transform
 
-from maniskill_torchrl.episode_stats import EpisodeField, EpisodeStats, episode_fields
+from maniskill_torchrl.episode_stats import SUMMATIONS, EpisodeField, EpisodeStats, episode_fields
 
 __all__ = ["EpisodeMetrics"]
 
@@ -31,17 +31,33 @@ class EpisodeMetrics(Transform):
       for ``"fail"``.
 
     The entries are declared in the observation spec, so batched envs and
-    collectors keep them; each has the parent's batch shape. At reset they are
-    zeros for the envs being reset; a ``"_reset"`` mask resets only those envs
-    (partial resets of the GPU sim, or of a batched env with the transform on
-    top), the others carry on. Any batch works: one unbatched CPU env (after
+    collectors keep them; each has the parent's batch shape. They are also the
+    transform's running state: each step reads the last ones from the input
+    tensordict, as TorchRL's ``StepCounter`` and ``RewardSum`` do, so stepping
+    twice from the same root (``env.rollout(n, tensordict=root)``, planners)
+    starts both branches from that root's values. At reset they are zeros for
+    the envs being reset; a ``"_reset"`` mask resets only those envs (partial
+    resets of the GPU sim, or of a batched env with the transform on top), the
+    others carry on. Any batch works: one unbatched CPU env (after
     :class:`~maniskill_torchrl.transforms.CPUUnbatch`), a ``ParallelEnv`` of
     them, or ``num_envs`` GPU-sim envs; the statistics live on the parent's
     device.
 
+    ``return`` is summed one of two ways (``summation``), after the two anchors:
+
+    - ``"numpy"`` (default on the CPU): ``numpy.sum`` of the episode's rewards,
+      bit for bit ``CPUGymWrapper``'s; one host-side numpy reduction per env per step;
+    - ``"running"`` (default elsewhere, e.g. the GPU sim): a running float32 sum,
+      bit for bit ``ManiSkillVectorEnv(record_metrics=True)``'s; a few tensor ops
+      per step whatever the batch and the episode lengths, and no host sync.
+
     Add :class:`~maniskill_torchrl.transforms.IgnoreTerminations` before it
     to measure episodes that run to the time limit (what ManiSkill's
     evaluation does with ``ignore_terminations=True``).
+
+    Args:
+        summation (str, optional): ``"numpy"`` or ``"running"``; None (default) picks
+            by the parent's device, as above.
 
     Examples:
         >>> from torchrl.envs import TransformedEnv, Compose
@@ -59,10 +75,12 @@ class EpisodeMetrics(Transform):
         ['episode_len', 'return', 'reward', 'success_at_end', 'success_once']
     """
 
-    def __init__(self) -> None:
+    def __init__(self, summation: str | None = None) -> None:
+        if summation is not None and summation not in SUMMATIONS:
+            raise ValueError(f"summation={summation!r}: use one of {SUMMATIONS} (or None: by the env's device).")
         super().__init__()
+        self.summation = summation
         self._stats: EpisodeStats | None = None
-        self._last: TensorDictBase | None = None
 
     # ----------------------------------------------------------- set-up
     def _flags(self) -> tuple[bool, bool]:
@@ -83,7 +101,9 @@ class EpisodeMetrics(Transform):
                 + ". For several agents, sum their rewards into one entry first."
             )
         has_success, has_fail = self._flags()
-        self._stats = EpisodeStats(parent.batch_size, parent.device, has_success=has_success, has_fail=has_fail)
+        self._stats = EpisodeStats(
+            parent.batch_size, parent.device, has_success=has_success, has_fail=has_fail, summation=self.summation
+        )
         self._reward_key = reward_keys[0]
         self._reset_keys = list(parent.reset_keys)
         return self._stats
@@ -92,7 +112,6 @@ class EpisodeMetrics(Transform):
         super().set_container(container)
         # A new parent may have another batch, device or info keys.
         self._stats = None
-        self._last = None
 
     def _episode_spec(self) -> Composite:
         parent = self.parent
@@ -116,12 +135,11 @@ class EpisodeMetrics(Transform):
         if stats is None:
             stats = self._make_stats()
         episode = stats.update(
+            tensordict.get("episode", None),
             next_tensordict.get(self._reward_key),
             next_tensordict.get("success") if stats.has_success else None,
             next_tensordict.get("fail") if stats.has_fail else None,
         )
-        # Kept (not copied) for partial resets; EpisodeStats never writes into returned tensors.
-        self._last = episode
         next_tensordict.set("episode", episode)
         return next_tensordict
 
@@ -141,18 +159,13 @@ class EpisodeMetrics(Transform):
         stats = self._stats
         if stats is None:
             stats = self._make_stats()
-        mask = self._reset_mask(tensordict, stats.batch_size) if tensordict is not None else None
-        if mask is None or self._last is None:
-            stats.reset()
-            episode = stats.zeros()
-        else:
-            # Zeros for the envs being reset, the others keep their running values. No
-            # ``mask.all()`` shortcut: on the GPU sim it would sync the host at every reset.
-            stats.reset(mask)
-            episode = self._last.apply(lambda last, zero: torch.where(mask, zero, last), stats.zeros())
-        self._last = episode
+        previous = tensordict.get("episode", None) if tensordict is not None else None
+        mask = self._reset_mask(tensordict, stats.batch_size) if previous is not None else None
+        # No ``mask.all()`` shortcut: on the GPU sim it would sync the host at every reset.
+        episode = stats.zeros() if mask is None else stats.restart(previous, mask)
         tensordict_reset.set("episode", episode)
         return tensordict_reset
 
     def __repr__(self) -> str:
-        return f"{type(self).__name__}()"
+        arg = "" if self.summation is None else f"summation={self.summation!r}"
+        return f"{type(self).__name__}({arg})"

@@ -17,6 +17,7 @@ import torch
 from mani_skill.envs.sapien_env import BaseEnv
 from mani_skill.utils.common import to_numpy
 from mani_skill.utils.wrappers.gymnasium import CPUGymWrapper as _ManiSkillCPUGymWrapper
+from tensordict import TensorDict
 
 from maniskill_torchrl.episode_stats import EpisodeField, EpisodeStats
 from maniskill_torchrl.wrappers._common import np_unbatch, require_maniskill_env
@@ -117,6 +118,7 @@ class CPUGymWrapper(_ManiSkillCPUGymWrapper):
         # The checks above replace ManiSkill's asserts, which now pass.
         super().__init__(env, ignore_terminations, record_metrics)
         self._stats: EpisodeStats | None = None
+        self._running: TensorDict | None = None  # the running metrics (None: a fresh episode)
         self._layouts: dict[bool, list[tuple[str, bool]]] = {}
 
     @property
@@ -142,7 +144,9 @@ class CPUGymWrapper(_ManiSkillCPUGymWrapper):
         if stats is None:
             stats = self._stats = EpisodeStats((1,), has_success="success" in info, has_fail="fail" in info)
             self._layouts = {ignore: _gym_layout(stats.fields, ignore) for ignore in (False, True)}
-        ep = stats.update(_tensor(reward), _tensor(info.get("success")), _tensor(info.get("fail")))
+        ep = self._running = stats.update(
+            self._running, _tensor(reward), _tensor(info.get("success")), _tensor(info.get("fail"))
+        )
         # Key order and python / numpy types as ManiSkill's CPUGymWrapper.
         return {
             name: ep.get(name).numpy()[0] if as_numpy else ep.get(name).item()
@@ -151,8 +155,7 @@ class CPUGymWrapper(_ManiSkillCPUGymWrapper):
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Any, dict[str, Any]]:
         obs, info = self.env.reset(seed=seed, options=options)
-        if self._stats is not None:
-            self._stats.reset()
+        self._running = None
         return np_unbatch(obs), np_unbatch(info)
 
     def render(self) -> np.ndarray | Any | None:
