@@ -22,6 +22,7 @@ from unittest import mock
 import gymnasium as gym
 import numpy as np
 import torch
+from tensordict import TensorDictBase
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "examples"
@@ -110,9 +111,17 @@ def _tensor_diff(got: torch.Tensor, want: torch.Tensor, what: str) -> str:
 
 def assert_same(a: Any, b: Any, what: str = "out") -> None:
     """``a`` and ``b`` are the same: python types at every level, dict key order, dtypes, shapes,
-    devices and bits (tensors on any device; a difference names the envs, first dim, that differ)."""
+    devices and bits (tensors on any device; a difference names the envs, first dim, that differ);
+    TensorDicts leaf by leaf."""
     assert type(a) is type(b), f"{what}: {type(a).__name__} vs {type(b).__name__}"
-    if isinstance(a, dict):
+    if isinstance(a, TensorDictBase):
+        keys = sorted(a.keys(include_nested=True, leaves_only=True), key=str)
+        other = sorted(b.keys(include_nested=True, leaves_only=True), key=str)
+        assert keys == other, f"{what}: keys {keys} vs {other}"
+        assert a.batch_size == b.batch_size, f"{what}: batch {a.batch_size} vs {b.batch_size}"
+        for k in keys:
+            assert_same(a.get(k), b.get(k), f"{what}[{k!r}]")
+    elif isinstance(a, dict):
         assert list(a) == list(b), f"{what}: keys {list(a)} vs {list(b)}"
         for k in a:
             assert_same(a[k], b[k], f"{what}[{k!r}]")
