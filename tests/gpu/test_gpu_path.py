@@ -32,6 +32,7 @@ from gpu_helpers import (
 )
 from helpers import assert_same, clone_tree
 from maniskill_torchrl import ActionRepeat, EpisodeMetrics, IgnoreTerminations, ManiSkillEnv, ManiSkillWrapper
+from maniskill_torchrl.errors import checked_base_env
 
 pytestmark = requires_gpu
 
@@ -78,9 +79,11 @@ def test_cuda_device_names():
     try:
         assert env.device == torch.device("cuda", torch.cuda.current_device())
         assert env.rollout(2)["next", "observation"].device == env.device
+        # Checked without a second wrapper: a collected wrapper would close the shared ManiSkill env.
         with pytest.raises(ValueError, match="differs from the ManiSkill env's device"):
-            ManiSkillWrapper(env._env, device="cpu")
-        assert ManiSkillWrapper(env._env, device=env.device).device == env.device
+            checked_base_env(env._env, "cpu", from_pixels=False, pixels_only=False)
+        for device in (env.device, "cuda", torch.device("cuda")):
+            assert checked_base_env(env._env, device, from_pixels=False, pixels_only=False) is env.base_env
     finally:
         env.close()
 
