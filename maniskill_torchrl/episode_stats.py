@@ -161,6 +161,7 @@ class EpisodeStats:
             total = torch.add(previous.get("return"), reward).to(torch.float32)
         n = n + 1
         flags = {"success": success, "fail": fail}
+        flags = {k: v.reshape(b) for k, v in flags.items() if v is not None}
         out = {}
         for f in self.fields:
             kind = f.kind
@@ -171,7 +172,7 @@ class EpisodeStats:
             elif kind == "mean":
                 out[f.name] = total / n
             elif kind == "once":
-                out[f.name] = previous.get(f.name) | flags[f.source].reshape(b)
+                out[f.name] = previous.get(f.name) | flags[f.source]
             else:  # "at_end"
-                out[f.name] = flags[f.source].reshape(b)
+                out[f.name] = flags[f.source]
         return new_tensordict(out, batch_size=b, device=self.device)

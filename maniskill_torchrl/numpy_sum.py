@@ -53,15 +53,21 @@ class NumpyOrderSums:
         ``reward`` and ``position`` are shaped as the batch; the result is float32, shaped as the
         batch, on ``reward``'s device.
         """
-        rewards = reward.detach().reshape(-1).to("cpu", torch.float32).numpy()
+        on_host = reward.device.type == "cpu"
+        rewards = reward.detach().reshape(-1)
+        if not on_host or rewards.dtype != torch.float32:
+            rewards = rewards.to("cpu", torch.float32)
+        rewards = rewards.numpy()
         positions = position.reshape(-1).tolist()
         hist = self._hist
-        if positions and max(positions) >= hist.shape[1]:
-            grown = np.zeros((hist.shape[0], 2 * (max(positions) + 1)), np.float32)
+        last = max(positions, default=0)
+        if last >= hist.shape[1]:
+            grown = np.zeros((hist.shape[0], 2 * (last + 1)), np.float32)
             grown[:, : hist.shape[1]] = hist
             hist = self._hist = grown
         totals = np.empty(len(positions), np.float32)
         for i, k in enumerate(positions):
             hist[i, k] = rewards[i]
             totals[i] = np.add.reduce(hist[i, : k + 1])
-        return torch.from_numpy(totals).view(self.batch_size).to(reward.device)
+        out = torch.from_numpy(totals).view(self.batch_size)
+        return out if on_host else out.to(reward.device)
