@@ -3,7 +3,7 @@
 ``ManiSkillVectorEnv(record_metrics=True)`` without host syncs, and a wrapped
 ``ManiSkillVectorEnv(auto_reset=False)``.
 
-``tests/test_gpu_path.py`` proves the same on the CPU with test doubles; these run the real GPU
+``tests/test_gpu_doubles.py`` proves the same on the CPU with test doubles; these run the real GPU
 sim (SAPIEN's PhysX GPU library needed). Skipped without CUDA.
 """
 
