@@ -1,6 +1,6 @@
 # maniskill_torchrl developer targets. Run `make` for help.
 .DEFAULT_GOAL := help
-.PHONY: help setup test test-nightly lint demo bench clean gpu-kit
+.PHONY: help setup test test-registry test-nightly lint demo bench clean gpu-kit
 
 # MANISKILL=release (default: mani-skill 3.0.x, in .venv) or nightly (mani-skill-nightly, in .venv-nightly).
 MANISKILL   ?= release
@@ -16,6 +16,7 @@ help:
 	@echo "Targets:"
 	@echo "  make setup   create .venv and install the package (+ test, demo, distributed, maniskill extras); checks Vulkan"
 	@echo "  make test    run the test suite (PYTEST_ARGS=... passed to pytest)"
+	@echo "  make test-registry  every task of ManiSkill's registry whose assets are here (tests/registry)"
 	@echo "               MANISKILL=nightly: against mani-skill-nightly, in .venv-nightly (= make test-nightly)"
 	@echo "  make lint    ruff check + ruff format --check"
 	@echo "  make demo    run the demo CLI (DEMO_ARGS=... passed to 'maniskill-torchrl demo')"
@@ -27,7 +28,10 @@ setup:
 	@MANISKILL=$(MANISKILL) bash scripts/setup.sh
 
 test: setup lint
-	$(VENV)/bin/python -m pytest -q --durations=15 tests $(PYTEST_ARGS)
+	$(VENV)/bin/python -m pytest -q --durations=15 tests --ignore=tests/registry $(PYTEST_ARGS)
+
+test-registry: setup
+	$(VENV)/bin/python -m pytest -q -rs --durations=10 tests/registry $(PYTEST_ARGS)
 
 test-nightly:
 	@$(MAKE) --no-print-directory test MANISKILL=nightly

@@ -32,6 +32,7 @@ import torch
 from gymnasium.vector import AsyncVectorEnv, AutoresetMode
 from gymnasium.vector.utils import create_empty_array
 
+from maniskill_torchrl._maniskill import check_assets
 from maniskill_torchrl.cpu_worker import (
     INFO,
     OBS,
@@ -106,6 +107,7 @@ class CPUVectorEnv:
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
             raise ValueError(f"CPUVectorEnv: num_envs must be a positive int, got {num_envs!r}.")
         maniskill_kwargs.setdefault("sim_backend", "physx_cpu")
+        check_assets(env_id, maniskill_kwargs)  # before any worker starts
         self.num_envs = int(num_envs)
         self.device = torch.device("cpu")
         self._first = 1 if in_process else 0  # the sub-env index of the first worker

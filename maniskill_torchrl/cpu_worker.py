@@ -24,7 +24,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from maniskill_torchrl._maniskill import maniskill_base_env, render_frame_shape, wrapper_attr
+from maniskill_torchrl._maniskill import maniskill_base_env, no_asset_prompt, render_frame_shape, wrapper_attr
 
 __all__ = [
     "OBS",
@@ -104,7 +104,9 @@ class StepInObservation(gym.Wrapper):
 
     :meth:`set_repeat` ``(k)`` makes each ``step`` go through the gym shim's
     :class:`~maniskill_torchrl.wrappers.ActionRepeatWrapper` (ManiSkill's, bit for bit)
-    around the env: up to ``k`` steps in this worker, none after its episode's end.
+    around the env with its reward in float32: up to ``k`` steps in this worker, none after its
+    episode's end, rewards summed in float32 as :class:`~maniskill_torchrl.transforms.ActionRepeat`
+    sums them.
 
     Every call into the env runs under :func:`torch.inference_mode`: a ManiSkill step is
     hundreds of small torch ops, and inference mode skips autograd's bookkeeping for each
@@ -141,7 +143,9 @@ class StepInObservation(gym.Wrapper):
             # The gym shim (tensordict, no TorchRL) is imported only by workers that repeat.
             from maniskill_torchrl.wrappers.action_repeat import ActionRepeatWrapper
 
-            self._stepper = ActionRepeatWrapper(self.env, repeat)
+            # Each inner step's reward in float32 before the sum, as ActionRepeat sums the
+            # parent env's float32 rewards: one rule for bool and float64 tasks on both paths.
+            self._stepper = ActionRepeatWrapper(_Float32Reward(self.env), repeat)
         self.repeat = repeat
 
     @torch.inference_mode()
@@ -173,6 +177,13 @@ class StepInObservation(gym.Wrapper):
         return packed, 0.0, False, False, {}
 
 
+class _Float32Reward(gym.RewardWrapper):
+    """ManiSkill's batched reward as float32 (bool and float64 tasks), as the TorchRL env has it."""
+
+    def reward(self, reward: Any) -> Any:
+        return reward if reward.dtype == torch.float32 else reward.to(torch.float32)
+
+
 class MakeWorker:
     """Picklable env factory for the forkserver workers."""
 
@@ -188,7 +199,8 @@ class MakeWorker:
         """The env, with no change to this process's scheduling (the parent's own sub-env)."""
         import mani_skill.envs  # noqa: F401  (registers the tasks in the worker)
 
-        return StepInObservation(gym.make(self.env_id, num_envs=1, **self.kwargs))
+        with no_asset_prompt(self.env_id):  # a worker has no terminal to answer ManiSkill's prompt
+            return StepInObservation(gym.make(self.env_id, num_envs=1, **self.kwargs))
 
 
 def _batch_scheduling() -> None:

@@ -89,6 +89,9 @@ class EpisodeStats:
         device: where the statistics live (the env's device).
         has_success, has_fail: whether the task reports ``success`` / ``fail``.
         summation: ``"numpy"``, ``"running"`` or None (by device, as above).
+        native_return (bool): with ``"numpy"``, keep ``numpy.sum``'s dtype of the task's own
+            rewards, as ``CPUGymWrapper`` reports it (bool rewards: int64 ``return`` and float64
+            ``reward``; float64 rewards: float64 both): the gym shim's. False (default): float32.
 
     Examples:
         >>> import torch
@@ -111,6 +114,7 @@ class EpisodeStats:
         has_success: bool = True,
         has_fail: bool = True,
         summation: str | None = None,
+        native_return: bool = False,
     ) -> None:
         self.batch_size = torch.Size(batch_size)
         self.device = torch.device(device) if device is not None else torch.device("cpu")
@@ -123,7 +127,9 @@ class EpisodeStats:
             raise ValueError(f"summation={summation!r}: use one of {SUMMATIONS} (or None: by device).")
         #: ``"numpy"`` or ``"running"`` (see the class docstring)
         self.summation = summation
-        self._numpy = NumpyOrderSums(self.batch_size) if summation == "numpy" else None
+        if native_return and summation != "numpy":
+            raise ValueError("native_return=True needs summation='numpy' (numpy.sum's dtypes).")
+        self._numpy = NumpyOrderSums(self.batch_size, native=native_return) if summation == "numpy" else None
 
     def zeros(self) -> TensorDict:
         """The ``"episode"`` TensorDict of a fresh episode (all zeros), as :meth:`update` lays it out."""
@@ -169,8 +175,8 @@ class EpisodeStats:
                 out[f.name] = total
             elif kind == "count":
                 out[f.name] = n
-            elif kind == "mean":
-                out[f.name] = total / n
+            elif kind == "mean":  # numpy's true division: an int64 sum gives float64
+                out[f.name] = (total if total.is_floating_point() else total.to(torch.float64)) / n
             elif kind == "once":
                 out[f.name] = previous.get(f.name) | flags[f.source]
             else:  # "at_end"

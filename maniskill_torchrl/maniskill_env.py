@@ -10,7 +10,13 @@ import gymnasium as gym
 import torch
 from torchrl.data.utils import DEVICE_TYPING
 
-from maniskill_torchrl._maniskill import enable_physx_gpu, registered_env_ids, similar_env_ids
+from maniskill_torchrl._maniskill import (
+    check_assets,
+    enable_physx_gpu,
+    no_asset_prompt,
+    registered_env_ids,
+    similar_env_ids,
+)
 from maniskill_torchrl.cpu_vector import CPUVectorEnv
 from maniskill_torchrl.errors import check_frame_skip, checked_batch_size
 from maniskill_torchrl.maniskill_wrapper import ManiSkillWrapper
@@ -91,6 +97,7 @@ class ManiSkillEnv(ManiSkillWrapper):
             raise ValueError(f"num_envs must be a positive int, got {num_envs!r}.")
         checked_batch_size(batch_size, num_envs)  # before any process or sim is started
         check_frame_skip(maniskill_kwargs.pop("frame_skip", None))
+        check_assets(env_id, maniskill_kwargs)
         if from_pixels:
             maniskill_kwargs.setdefault("render_mode", "rgb_array")
         self._env_id = env_id
@@ -109,7 +116,8 @@ class ManiSkillEnv(ManiSkillWrapper):
                         "CUDA, and torch.cuda.is_available() is False: use sim_backend='cpu' (or 'auto')."
                     )
                 enable_physx_gpu()
-            env = gym.make(env_id, num_envs=num_envs, **maniskill_kwargs)
+            with no_asset_prompt(env_id):
+                env = gym.make(env_id, num_envs=num_envs, **maniskill_kwargs)
         if inference_mode is None:  # this class owns the ManiSkill env: inference mode on the CPU sim
             inference_mode = on_cpu
         super().__init__(

@@ -48,7 +48,8 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
       nested key paths and dtypes (images stay uint8);
     - a Box action space reads ``"action"``; a Dict action space (multi-agent
       tasks such as TwoRobotPickCube-v1) reads ``("action", <agent>)`` entries;
-    - ``reward`` is ``[B, 1]`` float32; ``terminated`` / ``truncated`` /
+    - ``reward`` is ``[B, 1]`` float32 for every task (a task's bool or float64 reward is cast,
+      as TorchRL's losses and value estimators expect float rewards of one dtype); ``terminated`` / ``truncated`` /
       ``done`` are ``[B, 1]`` bool (truncation is ManiSkill's time limit);
     - the task's tensor infos (``success``, ``fail``, ``elapsed_steps``...) are
       top-level entries declared in the observation spec, so collectors and
@@ -267,8 +268,14 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
         with self._sim_mode():
             obs, reward, terminated, truncated, info = self._env.step(action)
         source = self._to_tensordict(obs, info)
-        if self._copies:  # done below is computed out here: a new tensor
-            reward, terminated, truncated = reward.clone(), terminated.clone(), truncated.clone()
+        # TorchRL's float32 reward for every task: some report bool (DrawTriangle-v1) or float64
+        # (RotateValveLevel*) rewards. The cast is a copy; done below is a new tensor.
+        if reward.dtype != torch.float32:
+            reward = reward.to(torch.float32)
+        elif self._copies:
+            reward = reward.clone()
+        if self._copies:
+            terminated, truncated = terminated.clone(), truncated.clone()
         # ManiSkill gives [B] tensors: unsqueeze is the cheapest way to [B, 1] (view(shape) costs
         # twice as much on the CPU sim, where each op counts), and an unbatched env's [1] entries
         # are ManiSkill's [1] tensors as they are; other shapes go through view.

@@ -32,6 +32,9 @@ class NumpyOrderSums:
 
     Args:
         batch_size: the env batch.
+        native (bool): keep the rewards' own dtype, as ``numpy.sum`` of ManiSkill's numpy rewards
+            does (bool rewards sum to int64, float64 ones to float64: what ``CPUGymWrapper``
+            reports); False (default): rewards and sums in float32.
 
     Examples:
         >>> import numpy as np, torch
@@ -43,8 +46,9 @@ class NumpyOrderSums:
         True
     """
 
-    def __init__(self, batch_size: Sequence[int] | torch.Size) -> None:
+    def __init__(self, batch_size: Sequence[int] | torch.Size, *, native: bool = False) -> None:
         self.batch_size = torch.Size(batch_size)
+        self.native = native
         self._hist = np.zeros((self.batch_size.numel(), 256), np.float32)
 
     def add(self, reward: torch.Tensor, position: torch.Tensor) -> torch.Tensor:
@@ -55,17 +59,18 @@ class NumpyOrderSums:
         """
         on_host = reward.device.type == "cpu"
         rewards = reward.detach().reshape(-1)
-        if not on_host or rewards.dtype != torch.float32:
+        if not self.native and (not on_host or rewards.dtype != torch.float32):
             rewards = rewards.to("cpu", torch.float32)
-        rewards = rewards.numpy()
+        rewards = rewards.cpu().numpy()
         positions = position.reshape(-1).tolist()
         hist = self._hist
         last = max(positions, default=0)
-        if last >= hist.shape[1]:
-            grown = np.zeros((hist.shape[0], 2 * (last + 1)), np.float32)
+        if last >= hist.shape[1] or hist.dtype != rewards.dtype:
+            grown = np.zeros((hist.shape[0], max(hist.shape[1], 2 * (last + 1))), rewards.dtype)
             grown[:, : hist.shape[1]] = hist
             hist = self._hist = grown
-        totals = np.empty(len(positions), np.float32)
+        # numpy.sum's dtype: float32 for float32 rewards, int64 for bool ones, float64 for float64.
+        totals = np.empty(len(positions), np.add.reduce(hist[:1, :1], axis=1).dtype)
         for i, k in enumerate(positions):
             hist[i, k] = rewards[i]
             totals[i] = np.add.reduce(hist[i, : k + 1])

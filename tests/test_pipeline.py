@@ -14,6 +14,7 @@ import maniskill_torchrl.episode_stats as episode_stats_module
 import maniskill_torchrl.masked_merge as masked_merge_module
 import maniskill_torchrl.numpy_sum as numpy_sum_module
 import maniskill_torchrl.pipeline as pipeline_module
+import maniskill_torchrl.testing as testing_module
 from maniskill_torchrl import ActionRepeat, EpisodeMetrics, IgnoreTerminations, ManiSkillEnv
 from maniskill_torchrl.pipeline import make_env
 
@@ -60,7 +61,9 @@ def test_partial_pickles_for_worker_processes():
     assert pickle.loads(pickle.dumps(factory)).func is make_env
 
 
-@pytest.mark.parametrize("module", [pipeline_module, masked_merge_module, episode_stats_module, numpy_sum_module])
+@pytest.mark.parametrize(
+    "module", [pipeline_module, masked_merge_module, episode_stats_module, numpy_sum_module, testing_module]
+)
 def test_docstring_examples(module):
     result = doctest.testmod(module, optionflags=doctest.ELLIPSIS)
     assert result.attempted > 0 and result.failed == 0, module.__name__

@@ -142,7 +142,13 @@ class CPUGymWrapper(_ManiSkillCPUGymWrapper):
     def _episode(self, reward: Any, info: dict) -> dict[str, Any]:
         stats = self._stats
         if stats is None:
-            stats = self._stats = EpisodeStats((1,), has_success="success" in info, has_fail="fail" in info)
+            stats = self._stats = EpisodeStats(
+                (1,),
+                has_success="success" in info,
+                has_fail="fail" in info,
+                summation="numpy",
+                native_return=True,  # ManiSkill's np.sum of the task's own rewards
+            )
             self._layouts = {ignore: _gym_layout(stats.fields, ignore) for ignore in (False, True)}
         ep = self._running = stats.update(
             self._running, _tensor(reward), _tensor(info.get("success")), _tensor(info.get("fail"))

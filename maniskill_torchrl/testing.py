@@ -1,0 +1,320 @@
+"""Assertions for tests of ManiSkill tasks and pipelines run through this library: the library's
+own suite uses them, and so can yours (a task you registered with ``@register_env``, a pipeline).
+
+- :func:`assert_tensordict_equal`: two TensorDicts equal to the bit, with an error that names the
+  first differing entry and what differs.
+- :func:`check_maniskill_env`: a task through :class:`~maniskill_torchrl.ManiSkillEnv` against
+  raw ManiSkill (and, for one env, the gym shim against ManiSkill's ``CPUGymWrapper``), with the
+  same seeds and actions, resets included.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+
+__all__ = ["assert_tensordict_equal", "check_maniskill_env"]
+
+# Element size -> the integer dtype whose values are a float's bits.
+_BITS = {1: torch.uint8, 2: torch.int16, 4: torch.int32, 8: torch.int64}
+
+
+def _leaves(td: TensorDictBase) -> list:
+    return sorted(td.keys(include_nested=True, leaves_only=True), key=str)
+
+
+def _bits(x: torch.Tensor) -> torch.Tensor:
+    flat = x.detach().cpu().contiguous().reshape(-1)
+    if flat.dtype == torch.bool:
+        return flat.view(torch.uint8)
+    as_int = _BITS.get(flat.element_size())
+    return flat.view(as_int) if as_int is not None else flat.view(torch.uint8)
+
+
+def _tensor_difference(actual: torch.Tensor, expected: torch.Tensor) -> str | None:
+    """What differs between two tensors (shape, dtype, device or bits), or None."""
+    for what in ("shape", "dtype", "device"):
+        a, e = getattr(actual, what), getattr(expected, what)
+        if a != e:
+            return f"{what} {tuple(a) if what == 'shape' else a} != expected {tuple(e) if what == 'shape' else e}"
+    a, e = _bits(actual), _bits(expected)
+    if torch.equal(a, e):
+        return None
+    if a.shape != e.shape:  # an element size without an integer view: bytes compared
+        return "bytes differ"
+    diff = (a != e).nonzero().reshape(-1)
+    first = int(diff[0])
+    index = tuple(int(i) for i in np.unravel_index(first, tuple(actual.shape))) if actual.ndim else ()
+    got = actual.detach().cpu().reshape(-1)[first].item()
+    want = expected.detach().cpu().reshape(-1)[first].item()
+    return (
+        f"{diff.numel()} of {actual.numel()} values differ in their bits, first at index {index}: "
+        f"{got!r} != expected {want!r}"
+    )
+
+
+def assert_tensordict_equal(actual: TensorDictBase, expected: TensorDictBase, *, msg: str = "") -> None:
+    """Asserts that two TensorDicts are the same to the bit: the same leaf keys and batch size, and
+    for every leaf the same shape, dtype, device and bits.
+
+    Unlike :func:`tensordict.assert_close` (``torch.testing.assert_close`` per leaf), nothing is
+    within a tolerance: ``0.0`` and ``-0.0`` differ, a NaN equals only the same NaN bits, and a
+    float32 entry never equals a float64 one. The :class:`AssertionError` names the first
+    differing key path (in sorted order) and what differs.
+
+    Args:
+        actual: the TensorDict under test.
+        expected: the reference.
+
+    Keyword Args:
+        msg (str): prefixed to the error message.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from maniskill_torchrl.testing import assert_tensordict_equal
+        >>> a = TensorDict({"obs": torch.zeros(2, 3), ("next", "reward"): torch.ones(2, 1)}, [2])
+        >>> assert_tensordict_equal(a, a.clone())
+        >>> b = a.clone()
+        >>> b["next", "reward"][1] = 2.0
+        >>> assert_tensordict_equal(b, a)  # doctest: +ELLIPSIS
+        Traceback (most recent call last):
+        ...
+        AssertionError: ('next', 'reward'): 1 of 2 values differ in their bits, first at index (1, 0): 2.0 != ...
+    """
+    prefix = f"{msg}: " if msg else ""
+    for name, td in (("actual", actual), ("expected", expected)):
+        if not isinstance(td, TensorDictBase):
+            raise TypeError(f"assert_tensordict_equal compares TensorDicts; {name} is a {type(td).__name__}.")
+    keys, other = _leaves(actual), _leaves(expected)
+    if keys != other:
+        missing = [k for k in other if k not in keys]
+        extra = [k for k in keys if k not in other]
+        raise AssertionError(f"{prefix}keys differ: missing {missing}, unexpected {extra}")
+    if actual.batch_size != expected.batch_size:
+        raise AssertionError(f"{prefix}batch size {list(actual.batch_size)} != expected {list(expected.batch_size)}")
+    for key in keys:
+        a, e = actual.get(key), expected.get(key)
+        if not (isinstance(a, torch.Tensor) and isinstance(e, torch.Tensor)):
+            if a != e:
+                raise AssertionError(f"{prefix}{key!r}: {a!r} != expected {e!r}")
+            continue
+        difference = _tensor_difference(a, e)
+        if difference is not None:
+            raise AssertionError(f"{prefix}{key!r}: {difference}")
+
+
+def check_maniskill_env(
+    env_id: str,
+    *,
+    steps: int = 50,
+    seed: int = 0,
+    num_envs: int = 1,
+    **maniskill_kwargs: Any,
+) -> None:
+    """Checks a ManiSkill task through this library against ManiSkill itself, to the bit.
+
+    1. :func:`torchrl.envs.utils.check_env_specs` on a ``ManiSkillEnv(env_id, num_envs=...,
+       **maniskill_kwargs)`` of its own (it steps its env).
+    2. A fresh ``ManiSkillEnv`` and raw ManiSkill (``gym.make``; on the CPU sim with
+       ``num_envs > 1``, one raw env per sub-env, sub-env ``i`` seeded ``s + i`` as the library
+       does) take ``steps`` steps with the same random actions; whenever an env is done, all of
+       them are reset with the next seed, on both sides. Every step's observation, reward (as
+       float32), ``terminated``, ``truncated``, ``done`` and tensor infos must be equal.
+    3. With ``num_envs=1`` (CPU sim): the gym shim's ``CPUGymWrapper`` against ManiSkill's, the
+       same way: observations, rewards, flags and infos equal in value, dtype and Python type.
+
+    Works for any registered task, your own included: register it (``@register_env``) before
+    calling. Raises an :class:`AssertionError` at the first difference, saying where.
+
+    Args:
+        env_id: a registered ManiSkill task.
+
+    Keyword Args:
+        steps (int): steps per comparison (resets included).
+        seed (int): the first reset's seed; reset ``k`` uses ``seed + 1000 * k``.
+        num_envs (int): the batch.
+        **maniskill_kwargs: passed to ``gym.make`` on every side (``obs_mode``, ``sim_backend``...).
+    """
+    import gymnasium as gym
+    from torchrl.envs.utils import check_env_specs
+
+    from maniskill_torchrl.cpu_vector import CPUVectorEnv
+    from maniskill_torchrl.maniskill_env import ManiSkillEnv
+
+    where = f"check_maniskill_env({env_id!r}, num_envs={num_envs})"
+    env = ManiSkillEnv(env_id, num_envs=num_envs, **maniskill_kwargs)
+    try:
+        check_env_specs(env, seed=seed)
+    finally:
+        env.close()
+
+    env = ManiSkillEnv(env_id, num_envs=num_envs, **maniskill_kwargs)
+    per_sub_env = isinstance(env.base_env, CPUVectorEnv)
+    on_gpu = env.gpu_sim_enabled
+    gym_kwargs = dict(maniskill_kwargs)
+    if per_sub_env:
+        gym_kwargs["sim_backend"] = "physx_cpu"
+        raws = [gym.make(env_id, num_envs=1, **gym_kwargs) for _ in range(num_envs)]
+    else:
+        raws = [gym.make(env_id, num_envs=num_envs, **gym_kwargs)]
+    try:
+        _compare_with_raw(env, raws, steps, seed, per_sub_env, where)
+    finally:
+        env.close()
+        for raw in raws:
+            raw.close()
+    if num_envs == 1 and not on_gpu:
+        _compare_shim(env_id, steps, seed, maniskill_kwargs, where)
+
+
+def _seeds(seed: int):
+    k = 0
+    while True:
+        yield seed + 1000 * k
+        k += 1
+
+
+def _as_tensordict(tree: Mapping, batch: int) -> TensorDict:
+    return TensorDict(
+        {k: _as_tensordict(v, batch) if isinstance(v, Mapping) else v for k, v in tree.items()},
+        batch_size=[batch],
+    )
+
+
+def _raw_step_tensordict(env: Any, obs: Any, info: Mapping, reward=None, terminated=None, truncated=None) -> TensorDict:
+    """What the library's env must return for one raw ManiSkill step (or reset: no reward)."""
+    n = env.batch_size.numel() if env.batch_size else 1
+    entries: dict = {}
+    if isinstance(obs, Mapping):
+        entries.update(_as_tensordict(obs, n).to_dict())
+    else:
+        entries["observation"] = obs
+    for key, td_key in env._info_map:
+        entries[td_key] = info[key]
+    if reward is not None:
+        entries["reward"] = reward.to(torch.float32).reshape(n, 1)
+        entries["terminated"] = terminated.reshape(n, 1)
+        entries["truncated"] = truncated.reshape(n, 1)
+        entries["done"] = (terminated | truncated).reshape(n, 1)
+    return _as_tensordict(entries, n)
+
+
+def _cat(parts: list) -> Any:
+    if isinstance(parts[0], Mapping):
+        return {k: _cat([p[k] for p in parts]) for k in parts[0]}
+    if isinstance(parts[0], torch.Tensor):
+        return torch.cat(parts)
+    return parts[0]
+
+
+def _raw_reset(raws: list, seed: int, per_sub_env: bool) -> tuple:
+    outs = [raw.reset(seed=seed + i if per_sub_env else seed) for i, raw in enumerate(raws)]
+    return _cat([o[0] for o in outs]), _cat([o[1] for o in outs])
+
+
+def _raw_step(raws: list, action: Any) -> tuple:
+    if len(raws) == 1:
+        return raws[0].step(action)
+    outs = [raw.step(action[i : i + 1]) for i, raw in enumerate(raws)]
+    return tuple(_cat([o[j] for o in outs]) for j in range(5))
+
+
+def _compare_with_raw(env: Any, raws: list, steps: int, seed: int, per_sub_env: bool, where: str) -> None:
+    seeds = _seeds(seed)
+    g = torch.Generator().manual_seed(seed)
+    s = next(seeds)
+    td = env.reset(seed=s)
+    obs, info = _raw_reset(raws, s, per_sub_env)
+    expected = _raw_step_tensordict(env, obs, info)
+    keys = _leaves(expected)
+    assert_tensordict_equal(td.select(*keys), expected, msg=f"{where}, reset with seed {s}")
+    for t in range(steps):
+        td = td.set("action", _random_action(env, g))
+        action = td.get("action")
+        td = env.step(td)
+        obs, reward, terminated, truncated, info = _raw_step(raws, action.clone())
+        expected = _raw_step_tensordict(env, obs, info, reward, terminated, truncated)
+        assert_tensordict_equal(td["next"].select(*_leaves(expected)), expected, msg=f"{where}, step {t}")
+        td = td["next"].exclude("reward", "terminated", "truncated", "done")
+        if expected["done"].any():
+            s = next(seeds)
+            td = env.reset(seed=s)
+            obs, info = _raw_reset(raws, s, per_sub_env)
+            assert_tensordict_equal(
+                td.select(*keys), _raw_step_tensordict(env, obs, info), msg=f"{where}, reset with seed {s}"
+            )
+
+
+def _random_action(env: Any, g: torch.Generator) -> Any:
+    spec = env.full_action_spec["action"]
+
+    def draw(s):
+        low, high = s.space.low, s.space.high
+        return (low + (high - low) * torch.rand(s.shape, generator=g)).to(s.dtype)
+
+    if hasattr(spec, "keys") and not hasattr(spec, "space"):
+        return TensorDict({k: draw(spec[k]) for k in spec.keys()}, batch_size=env.batch_size)
+    return draw(spec)
+
+
+def _compare_shim(env_id: str, steps: int, seed: int, maniskill_kwargs: dict, where: str) -> None:
+    import gymnasium as gym
+    from mani_skill.utils.wrappers import CPUGymWrapper as Theirs
+
+    from maniskill_torchrl.wrappers import CPUGymWrapper as Ours
+
+    kwargs = dict(maniskill_kwargs, num_envs=1)
+    theirs = Theirs(gym.make(env_id, **kwargs), record_metrics=True)
+    ours = Ours(gym.make(env_id, **kwargs), record_metrics=True)
+    try:
+        seeds = _seeds(seed)
+        space = theirs.action_space
+        rng = np.random.default_rng(seed)
+        s = next(seeds)
+        _same(ours.reset(seed=s), theirs.reset(seed=s), f"{where}, gym shim reset with seed {s}")
+        for t in range(steps):
+            action = _space_sample(space, rng)
+            out = ours.step(action)
+            _same(out, theirs.step(action), f"{where}, gym shim step {t}")
+            if out[2] or out[3]:
+                s = next(seeds)
+                _same(ours.reset(seed=s), theirs.reset(seed=s), f"{where}, gym shim reset with seed {s}")
+    finally:
+        theirs.close()
+        ours.close()
+
+
+def _space_sample(space: Any, rng: np.random.Generator) -> Any:
+    import gymnasium as gym
+
+    if isinstance(space, gym.spaces.Dict):
+        return {k: _space_sample(v, rng) for k, v in space.spaces.items()}
+    return rng.uniform(space.low, space.high).astype(space.dtype)
+
+
+def _same(a: Any, b: Any, where: str) -> None:
+    """Equal in value, dtype and Python type, through dicts and tuples."""
+    if type(a) is not type(b):
+        raise AssertionError(f"{where}: {type(a).__name__} != expected {type(b).__name__}")
+    if isinstance(a, Mapping):
+        if list(a) != list(b):
+            raise AssertionError(f"{where}: keys {list(a)} != expected {list(b)}")
+        for k in a:
+            _same(a[k], b[k], f"{where}[{k!r}]")
+    elif isinstance(a, (tuple, list)):
+        for i, (x, y) in enumerate(zip(a, b)):
+            _same(x, y, f"{where}[{i}]")
+    elif isinstance(a, (np.ndarray, np.generic)):
+        if a.dtype != b.dtype or a.shape != b.shape or a.tobytes() != b.tobytes():
+            raise AssertionError(f"{where}: {a!r} != expected {b!r}")
+    elif isinstance(a, torch.Tensor):
+        difference = _tensor_difference(a, b)
+        if difference is not None:
+            raise AssertionError(f"{where}: {difference}")
+    elif a != b and not (isinstance(a, float) and np.isnan(a) and np.isnan(b)):
+        raise AssertionError(f"{where}: {a!r} != expected {b!r}")
