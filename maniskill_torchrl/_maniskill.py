@@ -290,6 +290,11 @@ def no_asset_prompt(env_id: str) -> Iterator[None]:
     download_asset.prompt_yes_no = refuse
     try:
         yield
+    except RuntimeError as e:
+        # Some tasks check their dataset themselves and say which download_asset id fetches it.
+        if "mani_skill.utils.download_asset" not in str(e):
+            raise
+        raise FileNotFoundError(f"ManiSkill task {env_id!r} needs assets that are not downloaded: {e}") from e
     except FileNotFoundError as e:
         # A task whose assets ManiSkill did not declare (scene datasets): a file missing under its
         # asset folder is a missing download, whatever error the task raises for it.

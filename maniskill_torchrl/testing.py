@@ -205,9 +205,13 @@ def _raw_step_tensordict(env: Any, obs: Any, info: Mapping, reward=None, termina
 
 
 def _cat(parts: list) -> Any:
+    """One raw env's outputs, or several single envs' joined along the batch (what the batched
+    CPU env returns); entries without a batch dim (0-d tensors, python values) from the first."""
+    if len(parts) == 1:
+        return parts[0]
     if isinstance(parts[0], Mapping):
         return {k: _cat([p[k] for p in parts]) for k in parts[0]}
-    if isinstance(parts[0], torch.Tensor):
+    if isinstance(parts[0], torch.Tensor) and parts[0].ndim > 0:
         return torch.cat(parts)
     return parts[0]
 
@@ -218,9 +222,12 @@ def _raw_reset(raws: list, seed: int, per_sub_env: bool) -> tuple:
 
 
 def _raw_step(raws: list, action: Any) -> tuple:
+    def plain(a: Any) -> Any:  # ManiSkill takes a dict of tensors for several agents
+        return a.to_dict() if isinstance(a, TensorDictBase) else a
+
     if len(raws) == 1:
-        return raws[0].step(action)
-    outs = [raw.step(action[i : i + 1]) for i, raw in enumerate(raws)]
+        return raws[0].step(plain(action))
+    outs = [raw.step(plain(action[i : i + 1])) for i, raw in enumerate(raws)]
     return tuple(_cat([o[j] for o in outs]) for j in range(5))
 
 

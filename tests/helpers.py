@@ -24,6 +24,8 @@ import numpy as np
 import torch
 from tensordict import TensorDictBase
 
+from maniskill_torchrl.testing import assert_tensordict_equal
+
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "examples"
 TIMEOUT_S = 300  # a hung worker fails the test instead of the session
@@ -112,15 +114,10 @@ def _tensor_diff(got: torch.Tensor, want: torch.Tensor, what: str) -> str:
 def assert_same(a: Any, b: Any, what: str = "out") -> None:
     """``a`` and ``b`` are the same: python types at every level, dict key order, dtypes, shapes,
     devices and bits (tensors on any device; a difference names the envs, first dim, that differ);
-    TensorDicts leaf by leaf."""
+    TensorDicts with the library's public ``assert_tensordict_equal``."""
     assert type(a) is type(b), f"{what}: {type(a).__name__} vs {type(b).__name__}"
     if isinstance(a, TensorDictBase):
-        keys = sorted(a.keys(include_nested=True, leaves_only=True), key=str)
-        other = sorted(b.keys(include_nested=True, leaves_only=True), key=str)
-        assert keys == other, f"{what}: keys {keys} vs {other}"
-        assert a.batch_size == b.batch_size, f"{what}: batch {a.batch_size} vs {b.batch_size}"
-        for k in keys:
-            assert_same(a.get(k), b.get(k), f"{what}[{k!r}]")
+        assert_tensordict_equal(a, b, msg=what)
     elif isinstance(a, dict):
         assert list(a) == list(b), f"{what}: keys {list(a)} vs {list(b)}"
         for k in a:

@@ -24,7 +24,9 @@ BATCHED_SAMPLE = [
     "PushT-v1",  # panda_stick
     "DrawTriangle-v1",  # panda_stick, bool reward
     "PickCubeSO100-v1",  # so100
-    "PickCubeWidowXAI-v1",  # widowx ai
+    "RotateSingleObjectInHandLevel0-v1",  # allegro hand
+    "TwoRobotPickCube-v1",  # two pandas: Dict actions
+    "MS-AntWalk-v1",  # MJCF ant
     "UnitreeG1Stand-v1",  # unitree g1, bool reward
     "RotateValveLevel0-v1",  # dclaw, float64 reward
     "TriFingerRotateCubeLevel0-v1",  # trifinger
