@@ -116,6 +116,8 @@ CPU_CASES = [
     ("MS-CartpoleBalance-v1", "state_dict", 20, 40),
     ("TwoRobotPickCube-v1", "state", 10, 14),
     ("TwoRobotPickCube-v1", "state_dict", 10, 14),
+    ("DrawTriangle-v1", "state", 7, 10),  # bool rewards: ManiSkill's int64 return
+    ("RotateValveLevel0-v1", "state", 7, 10),  # float64 rewards
 ]
 
 
@@ -213,6 +215,8 @@ AR_CASES = [
     ("PickCube-v1", "state_dict", 10, 6),
     ("MS-CartpoleBalance-v1", "state", 20, 16),
     ("TwoRobotPickCube-v1", "state_dict", 10, 6),
+    ("DrawTriangle-v1", "state", 7, 6),  # bool rewards
+    ("RotateValveLevel0-v1", "state", 7, 6),  # float64 rewards
 ]
 
 
