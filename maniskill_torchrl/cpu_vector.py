@@ -37,10 +37,12 @@ from maniskill_torchrl.cpu_worker import (
     INFO,
     OBS,
     REWARD,
+    SUB_ENV_STATES,
     TERMINATED,
     TRUNCATED,
     MakeWorker,
     join_rows,
+    join_states,
     split_first,
     to_numpy,
     write_row,
@@ -114,18 +116,18 @@ class CPUVectorEnv:
         self._vec: AsyncVectorEnv | None = None
         self._local = None
         self._closed = False
-        make = MakeWorker(env_id, maniskill_kwargs)
+        makers = [MakeWorker(env_id, maniskill_kwargs, index=i) for i in range(num_envs)]
         try:
             if num_envs > self._first:
                 self._vec = AsyncVectorEnv(
-                    [make] * (num_envs - self._first),
+                    makers[self._first :],
                     shared_memory=True,
                     copy=False,  # we copy once, into torch
                     context=context,
                     autoreset_mode=AutoresetMode.DISABLED,
                 )
             if in_process:
-                self._local = make.make()
+                self._local = makers[0].make()
         except (EOFError, ConnectionError) as err:  # a worker died before gymnasium's own error handling
             self.close()
             raise RuntimeError(
@@ -206,6 +208,11 @@ class CPUVectorEnv:
             mask[:] = False
             mask[torch.as_tensor(env_idx, device="cpu").numpy()] = True
         seeds = self._seeds(seed, mask)
+        states = options.pop("reset_to_env_states", None)
+        if states is not None:
+            # ManiSkill's convention: one row of env_states per env being reset, in env order.
+            # Every sub-env being reset gets the rows and picks its own (one message to all).
+            options[SUB_ENV_STATES] = (np.flatnonzero(mask).tolist(), states["env_states"])
         workers = mask[self._first :]
         worker_options = dict(options)
         if not workers.all():
@@ -222,6 +229,11 @@ class CPUVectorEnv:
             write_row(self._row, mine)
         obs, _, _, _, info = self._read()
         return obs, info
+
+    def get_state_dict(self) -> dict:
+        """Every sub-env's ManiSkill ``get_state_dict()``, joined along the batch: ``[N, ...]``
+        tensors, what the GPU sim's ``get_state_dict()`` gives for N envs."""
+        return join_states(self.call("get_state_dict"))
 
     def _seeds(self, seed: int | list[int] | None, mask: np.ndarray) -> list[int | None]:
         """Each sub-env's reset seed: gymnasium's convention (``seed + i``) on the sub-envs in ``mask``."""

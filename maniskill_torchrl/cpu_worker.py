@@ -34,6 +34,8 @@ __all__ = [
     "TRUNCATED",
     "StepInObservation",
     "MakeWorker",
+    "SUB_ENV_STATES",
+    "join_states",
     "to_numpy",
     "split_first",
     "write_row",
@@ -43,6 +45,8 @@ __all__ = [
 
 # The entries of a worker's observation: its whole step.
 OBS, INFO, REWARD, TERMINATED, TRUNCATED = "obs", "info", "reward", "terminated", "truncated"
+# A reset option of the CPUVectorEnv's own: (sub-env indices being reset, their saved states, one row each).
+SUB_ENV_STATES = "_sub_env_states"
 
 
 def _numpy_dtype(dtype: torch.dtype) -> np.dtype:
@@ -114,8 +118,9 @@ class StepInObservation(gym.Wrapper):
     because nothing but numpy copies leaves the worker.
     """
 
-    def __init__(self, env: gym.Env) -> None:
+    def __init__(self, env: gym.Env, index: int = 0) -> None:
         super().__init__(env)
+        self.index = index  # this sub-env's place in the CPUVectorEnv's batch
         base = maniskill_base_env(env)
         if base is None or base.num_envs != 1 or base.gpu_sim_enabled:
             raise ValueError("CPUVectorEnv workers hold one ManiSkill env on the CPU sim (num_envs=1).")
@@ -166,7 +171,18 @@ class StepInObservation(gym.Wrapper):
         }
 
     @torch.inference_mode()
+    def get_state_dict(self) -> dict:
+        """ManiSkill's ``get_state_dict()`` of this env (``[1, ...]`` tensors), as normal tensors."""
+        return _map_tensors(self.env.unwrapped.get_state_dict(), torch.Tensor.clone)
+
+    @torch.inference_mode()
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        if options and SUB_ENV_STATES in options:
+            # The batch's saved states, one row per sub-env being reset: this env takes its own.
+            options = dict(options)
+            rows, states = options.pop(SUB_ENV_STATES)
+            k = rows.index(self.index)
+            options["reset_to_env_states"] = {"env_states": _map_tensors(states, lambda x: x[k : k + 1])}
         obs, info = self.env.reset(seed=seed, options=options)
         return self._pack(obs, info, np.float32(0), False, False), {}
 
@@ -184,11 +200,26 @@ class _Float32Reward(gym.RewardWrapper):
         return reward if reward.dtype == torch.float32 else reward.to(torch.float32)
 
 
-class MakeWorker:
-    """Picklable env factory for the forkserver workers."""
+def join_states(states: Any) -> dict:
+    """Sub-envs' ``get_state_dict()`` trees (``[1, ...]`` tensors) joined into one ``[N, ...]`` tree."""
+    first = states[0]
+    if isinstance(first, Mapping):
+        return {k: join_states([s[k] for s in states]) for k in first}
+    return torch.cat(list(states))
 
-    def __init__(self, env_id: str, kwargs: dict) -> None:
-        self.env_id, self.kwargs = env_id, kwargs
+
+def _map_tensors(tree: Any, fn: Any) -> Any:
+    """``tree`` (nested dicts of tensors) with ``fn`` applied to every tensor."""
+    if isinstance(tree, Mapping):
+        return {k: _map_tensors(v, fn) for k, v in tree.items()}
+    return fn(tree)
+
+
+class MakeWorker:
+    """Picklable env factory for the forkserver workers (``index``: the sub-env it makes)."""
+
+    def __init__(self, env_id: str, kwargs: dict, index: int = 0) -> None:
+        self.env_id, self.kwargs, self.index = env_id, kwargs, index
 
     def __call__(self) -> gym.Env:
         if multiprocessing.parent_process() is not None:  # a worker; gymnasium also calls this in the parent
@@ -200,7 +231,7 @@ class MakeWorker:
         import mani_skill.envs  # noqa: F401  (registers the tasks in the worker)
 
         with no_asset_prompt(self.env_id):  # a worker has no terminal to answer ManiSkill's prompt
-            return StepInObservation(gym.make(self.env_id, num_envs=1, **self.kwargs))
+            return StepInObservation(gym.make(self.env_id, num_envs=1, **self.kwargs), self.index)
 
 
 def _batch_scheduling() -> None:

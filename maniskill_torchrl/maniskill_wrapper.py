@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib.util
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
@@ -302,18 +302,30 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
             return super()._step_proc_data(next_tensordict_out)
         return next_tensordict_out
 
+    # ``env.reset(td, set_state=True, env_states=...)``: TorchRL's deterministic-reset convention
+    # (as IsaacLabWrapper's ``scene_state``), the saved states passed beside the tensordict.
+    _supports_set_state = True
+
     def _reset(
         self,
         tensordict: TensorDictBase | None = None,
         *,
         seed: int | None = None,
         options: dict | None = None,
+        set_state: bool | None = None,
+        env_states: TensorDictBase | Mapping | None = None,
         **kwargs: Any,
     ) -> TensorDictBase:
         if kwargs:
             raise TypeError(f"Unexpected reset arguments: {sorted(kwargs)}")
+        if (env_states is not None) != bool(set_state):
+            raise ValueError(
+                "A reset to saved states takes both set_state=True and env_states (from env.get_state()): "
+                "env.reset(td, set_state=True, env_states=states), or env.reset_to_state(states, td)."
+            )
         options = dict(options) if options else {}
         reset = tensordict.get("_reset", None) if tensordict is not None else None
+        env_idx = None
         if reset is not None:
             # The one host sync of a partial reset on the GPU sim: which envs. None, all or some
             # of them is then read off the index's host-side shape.
@@ -322,6 +334,14 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
                 return tensordict.exclude("_reset")
             if env_idx.numel() < reset.numel():
                 options["env_idx"] = env_idx
+            else:
+                env_idx = None
+        if set_state:
+            options["reset_to_env_states"] = {"env_states": self._state_rows(env_states, env_idx)}
+            # Nothing is drawn: the saved state, not a seed, makes this episode's start.
+            with self._sim_mode():
+                obs, info = self._env.reset(seed=seed, options=options)
+            return new_tensordict(self._to_tensordict(obs, info), batch_size=self.batch_size, device=self.device)
         if "env_idx" not in options:
             if seed is not None:
                 self._seeds.set(seed)
@@ -337,6 +357,49 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
 
     def _set_seed(self, seed: int | None) -> None:
         self._seeds.set(seed)
+
+    # -------------------------------------------------------------- saved states
+    def get_state(self) -> TensorDictBase:
+        """Every env's ManiSkill sim state (``get_state_dict()``: actor and articulation states,
+        controller state) as a TensorDict of this env's batch, to reset to later with
+        :meth:`reset_to_state` (or ``env.reset(td, set_state=True, env_states=state)``).
+
+        Examples:
+            >>> from maniskill_torchrl import ManiSkillEnv
+            >>> env = ManiSkillEnv("PickCube-v1", obs_mode="state")
+            >>> start = env.reset(seed=1)
+            >>> state = env.get_state()
+            >>> _ = env.rollout(3)
+            >>> (env.reset_to_state(state)["observation"] == start["observation"]).all().item()
+            True
+        """
+        with self._sim_mode():
+            state = self.base_env.get_state_dict()
+        state = new_tensordict(_tensor_tree(state), batch_size=torch.Size([self.base_env.num_envs]), device=self.device)
+        return state[0] if self._unbatched else state
+
+    def reset_to_state(
+        self, env_states: TensorDictBase | Mapping, tensordict: TensorDictBase | None = None, **kwargs: Any
+    ) -> TensorDictBase:
+        """Resets to saved ManiSkill states (:meth:`get_state`, or a trajectory file's ``env_states``
+        of one step): every env, or those of ``tensordict``'s ``"_reset"`` mask. ``env_states`` has
+        this env's batch (one row per env; the rows of the envs not being reset are not read).
+
+        The same as ``env.reset(tensordict, set_state=True, env_states=env_states)``; on a
+        :class:`~torchrl.envs.TransformedEnv`, call that form on the transformed env so that its
+        transforms reset too.
+        """
+        return self.reset(tensordict, set_state=True, env_states=env_states, **kwargs)
+
+    def _state_rows(self, env_states: TensorDictBase | Mapping, env_idx: torch.Tensor | None) -> dict:
+        """ManiSkill's ``reset_to_env_states`` batch: the rows of the envs being reset, as a dict."""
+        if not isinstance(env_states, TensorDictBase):
+            env_states = new_tensordict(_tensor_tree(env_states), batch_size=torch.Size([]))
+        if self._unbatched and env_states.batch_dims == 0:
+            env_states = env_states.unsqueeze(0)
+        if env_idx is not None:
+            env_states = env_states[env_idx]
+        return env_states.to(self.device).to_dict()
 
     # -------------------------------------------------------------- misc
     def render(self) -> Any:
@@ -369,3 +432,8 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
             f"batch_size={list(self.batch_size)}, "
             f"device={self.device}, gpu_sim={self.gpu_sim_enabled})"
         )
+
+
+def _tensor_tree(tree: Mapping) -> dict:
+    """A nested dict of tensors (ManiSkill's state dict) as plain dicts of normal tensors."""
+    return {k: _tensor_tree(v) if isinstance(v, Mapping) else torch.as_tensor(v).clone() for k, v in tree.items()}
