@@ -1,0 +1,133 @@
+"""ManiSkill trajectory files as TorchRL replay buffers (``ManiSkillExperienceReplay``): a file that
+ManiSkill's own ``RecordEpisode`` writes here (nothing can be downloaded) loads as exactly what
+``ManiSkillEnv(batch_size=[])`` gives stepping the same seeds and actions; selection, slices,
+the memmap cache, and bad files."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import h5py
+import pytest
+import torch
+from mani_skill.utils.wrappers import RecordEpisode
+from torchrl.data.replay_buffers import SliceSampler
+from torchrl.envs.utils import step_mdp
+
+from helpers import make_gym_env, random_actions
+from maniskill_torchrl import ManiSkillEnv, ManiSkillWrapper
+from maniskill_torchrl.data import ManiSkillExperienceReplay
+from maniskill_torchrl.testing import assert_tensordict_equal
+
+TASK = "PickCube-v1"
+STEPS = 6  # the time limit: every episode truncates there
+SEEDS = [11, 12, 13]
+
+
+def _actions(space) -> list[list[torch.Tensor]]:
+    return [random_actions(space, STEPS, seed=s) for s in SEEDS]
+
+
+@pytest.fixture(scope="module", params=["state", "state_dict"])
+def recorded(request, tmp_path_factory):
+    """ManiSkill's RecordEpisode file of 3 seeded episodes, the obs mode, and the reference: the
+    same episodes stepped through ``ManiSkillWrapper(env, batch_size=[])`` on the very gym env
+    that then records them."""
+    out = tmp_path_factory.mktemp(f"demos-{request.param}")
+    env = make_gym_env(TASK, obs_mode=request.param, max_episode_steps=STEPS)
+    actions = _actions(env.unwrapped.single_action_space)
+    # Not the instance's first reset on either side: ManiSkill's first reset gives a cube
+    # quaternion's zero components the other sign (-0.0) than later resets of the same seed.
+    env.reset(seed=0)
+    wrapped = ManiSkillWrapper(env, batch_size=[])
+    steps = []
+    for seed, episode in zip(SEEDS, actions):
+        td = wrapped.reset(seed=seed)
+        for a in episode:
+            td = wrapped.step(td.set("action", a))
+            # Leaf by leaf: TensorDict.clone() (tensordict 0.14) adds 0 to float leaves, which
+            # turns ManiSkill's -0.0 quaternion components into +0.0.
+            steps.append(td.apply(torch.Tensor.clone))
+            td = step_mdp(td)
+    rec = RecordEpisode(
+        env, output_dir=str(out), save_trajectory=True, trajectory_name="demo", save_video=False, record_reward=True
+    )
+    for seed, episode in zip(SEEDS, actions):
+        rec.reset(seed=seed)
+        for a in episode:
+            rec.step(a.unsqueeze(0))
+    rec.close()
+    return out / "demo.h5", request.param, torch.stack(steps)
+
+
+def test_loads_as_the_env_steps(recorded, tmp_path):
+    path, obs_mode, expected = recorded
+    demos = ManiSkillExperienceReplay(path, batch_size=4, env_id=TASK, root=tmp_path)
+    data = demos[:]
+    assert len(demos) == len(SEEDS) * STEPS
+    assert data["collector", "traj_ids"].tolist() == [i for i in range(len(SEEDS)) for _ in range(STEPS)]
+    keys = [k for k in data.keys(include_nested=True, leaves_only=True) if k != ("collector", "traj_ids")]
+    missing = set(keys) - set(expected.keys(include_nested=True, leaves_only=True))
+    assert not missing, f"keys the env does not have: {missing}"
+    assert_tensordict_equal(data.exclude("collector"), expected.select(*keys))
+    assert ("next", "reward") in keys and ("next", "success") in keys
+    # The observation keys are all there, nested as the env nests them.
+    obs_keys = set(ManiSkillEnv(TASK, batch_size=[], obs_mode=obs_mode).observation_spec.keys(True, True))
+    assert {k for k in obs_keys if k not in ("is_grasped", "is_obj_placed", "is_robot_static")} <= set(keys)
+    # Sampling gives the same layout.
+    assert set(demos.sample().keys(True, True)) - {"index"} == set(data.keys(True, True))
+
+
+def test_selection_slices_and_cache(recorded, tmp_path):
+    path, _, _ = recorded
+    meta = json.loads(path.with_suffix(".json").read_text())
+    succeeded = [e["episode_id"] for e in meta["episodes"] if e.get("success")]
+    if succeeded:
+        only = ManiSkillExperienceReplay(path, 4, success_only=True, root=tmp_path)
+        assert sorted(set(only[:]["collector", "traj_ids"].tolist())) == succeeded
+    else:
+        with pytest.raises(ValueError, match="no episode left"):
+            ManiSkillExperienceReplay(path, 4, success_only=True, root=tmp_path)
+    two = ManiSkillExperienceReplay(path, 4, num_episodes=2, root=tmp_path)
+    assert set(two[:]["collector", "traj_ids"].tolist()) == {0, 1}
+    sliced = ManiSkillExperienceReplay(
+        path, 8, root=tmp_path, sampler=SliceSampler(slice_len=4, traj_key=("collector", "traj_ids"))
+    )
+    batch = sliced.sample()
+    ids = batch["collector", "traj_ids"].reshape(2, 4)
+    assert (ids == ids[:, :1]).all()  # each slice within one episode
+    steps = batch["next", "elapsed_steps"].reshape(2, 4)
+    assert (steps[:, 1:] - steps[:, :-1] == 1).all()  # consecutive steps
+    # A second load reads the memmap cache: same data.
+    again = ManiSkillExperienceReplay(path, 4, root=tmp_path)
+    assert again._is_downloaded()
+    assert_tensordict_equal(again[:], ManiSkillExperienceReplay(path, 4, root=tmp_path)[:])
+    assert "episodes=3" in repr(again)
+
+
+def test_bad_files(recorded, tmp_path):
+    path, _, _ = recorded
+    lone = tmp_path / "lone.h5"
+    shutil.copy(path, lone)
+    with pytest.raises(FileNotFoundError, match=r"lone.json not found"):
+        ManiSkillExperienceReplay(lone, 4, root=tmp_path)
+    with pytest.raises(ValueError, match=r"holds episodes of 'PickCube-v1', not 'PushCube-v1'"):
+        ManiSkillExperienceReplay(path, 4, env_id="PushCube-v1", root=tmp_path)
+    broken = tmp_path / "broken.h5"
+    broken.write_bytes(path.read_bytes()[:200])
+    shutil.copy(path.with_suffix(".json"), broken.with_suffix(".json"))
+    with pytest.raises(OSError, match=r"broken.h5 as HDF5.*truncated"):
+        ManiSkillExperienceReplay(broken, 4, root=tmp_path)
+    bare = tmp_path / "bare.h5"
+    shutil.copy(path, bare)
+    shutil.copy(path.with_suffix(".json"), bare.with_suffix(".json"))
+    with h5py.File(bare, "a") as f:
+        for key in f:
+            del f[key]["obs"]
+    with pytest.raises(ValueError, match=r"no observations.*replay_trajectory"):
+        ManiSkillExperienceReplay(bare, 4, root=tmp_path)
+    (tmp_path / "other.json").write_text("{}")
+    shutil.copy(path, tmp_path / "other.h5")
+    with pytest.raises(ValueError, match="not a ManiSkill trajectory .json"):
+        ManiSkillExperienceReplay(tmp_path / "other.h5", 4, root=tmp_path)
