@@ -110,6 +110,8 @@ class CPUVectorEnv:
             raise ValueError(f"CPUVectorEnv: num_envs must be a positive int, got {num_envs!r}.")
         maniskill_kwargs.setdefault("sim_backend", "physx_cpu")
         check_assets(env_id, maniskill_kwargs)  # before any worker starts
+        #: the ``gym.make`` arguments of every sub-env (what a trajectory file records)
+        self.maniskill_kwargs = dict(maniskill_kwargs)
         self.num_envs = int(num_envs)
         self.device = torch.device("cpu")
         self._first = 1 if in_process else 0  # the sub-env index of the first worker

@@ -1,7 +1,8 @@
 """ManiSkill trajectory files as TorchRL replay buffers (``ManiSkillExperienceReplay``): a file that
 ManiSkill's own ``RecordEpisode`` writes here (nothing can be downloaded) loads as exactly what
 ``ManiSkillEnv(batch_size=[])`` gives stepping the same seeds and actions; selection, slices,
-the memmap cache, and bad files."""
+the memmap cache, and bad files. TorchRL rollouts written by ``save_trajectories`` read back as
+the rollout through ManiSkill's ``ManiSkillTrajectoryDataset`` and the library's loader."""
 
 from __future__ import annotations
 
@@ -11,14 +12,17 @@ import shutil
 import h5py
 import pytest
 import torch
+from mani_skill.trajectory.dataset import ManiSkillTrajectoryDataset
 from mani_skill.utils.wrappers import RecordEpisode
 from torchrl.data.replay_buffers import SliceSampler
+from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import step_mdp
 
 from helpers import make_gym_env, random_actions
 from maniskill_torchrl import ManiSkillEnv, ManiSkillWrapper
-from maniskill_torchrl.data import ManiSkillExperienceReplay
+from maniskill_torchrl.data import ManiSkillExperienceReplay, save_trajectories
 from maniskill_torchrl.testing import assert_tensordict_equal
+from maniskill_torchrl.transforms import EnvStates
 
 TASK = "PickCube-v1"
 STEPS = 6  # the time limit: every episode truncates there
@@ -131,3 +135,58 @@ def test_bad_files(recorded, tmp_path):
     shutil.copy(path, tmp_path / "other.h5")
     with pytest.raises(ValueError, match="not a ManiSkill trajectory .json"):
         ManiSkillExperienceReplay(tmp_path / "other.h5", 4, root=tmp_path)
+
+
+# ----------------------------------------------------------------------------- recording
+class _Scripted:
+    def __init__(self, actions):
+        self._it = iter(actions)
+
+    def __call__(self, td):
+        return td.set("action", next(self._it))
+
+
+@pytest.mark.parametrize("num_envs", [1, 2])
+def test_rollouts_saved_in_maniskill_format(tmp_path, num_envs):
+    """A TorchRL rollout written by save_trajectories: ManiSkill's ManiSkillTrajectoryDataset reads
+    it as the rollout, the library's loader gives the rollout back, and its env_states reset the
+    env to each episode's start."""
+    kwargs = dict(obs_mode="state", max_episode_steps=5)
+    if num_envs > 1:
+        kwargs["sim_backend"] = "cpu"
+    env = TransformedEnv(ManiSkillEnv(TASK, num_envs=num_envs, **kwargs), EnvStates())
+    try:
+        env.set_seed(3)
+        g = torch.Generator().manual_seed(0)
+        actions = [torch.rand(env.action_spec.shape, generator=g) * 2 - 1 for _ in range(12)]
+        rollout = env.rollout(12, policy=_Scripted(actions), break_when_any_done=False)
+        path = tmp_path / "ours.h5"
+        ids = save_trajectories(path, rollout, env)
+        assert len(ids) == 3 * num_envs  # per env: 2 full episodes (5 steps) and 2 steps of a third
+        rows = rollout.reshape(-1, 12)
+        flat = torch.cat(list(rows))  # episodes in the order written: env by env, in time
+
+        theirs = ManiSkillTrajectoryDataset(str(path))
+        assert theirs.env_id == TASK and theirs.env_kwargs["obs_mode"] == "state"
+        assert torch.equal(torch.from_numpy(theirs.obs), flat["observation"])
+        assert torch.equal(torch.from_numpy(theirs.actions), flat["action"])
+        assert torch.equal(torch.from_numpy(theirs.rewards), flat["next", "reward"].reshape(-1))
+        assert torch.equal(torch.from_numpy(theirs.terminated), flat["next", "terminated"].reshape(-1))
+        assert torch.equal(torch.from_numpy(theirs.truncated), flat["next", "truncated"].reshape(-1))
+        assert torch.equal(torch.from_numpy(theirs.success), flat["next", "success"])
+
+        ours = ManiSkillExperienceReplay(path, 4, root=tmp_path / "cache")[:]
+        keys = [k for k in ours.keys(True, True) if k not in (("collector", "traj_ids"), "elapsed_steps")]
+        keys = [k for k in keys if k != ("next", "elapsed_steps")]
+        assert_tensordict_equal(ours.select(*keys), flat.select(*keys))
+
+        # Each episode's first env_states row takes the env back to that episode's start.
+        with h5py.File(path) as f:
+            first = {k: torch.from_numpy(v[:1]) for k, v in f["traj_1"]["env_states"]["actors"].items()}
+            arts = {k: torch.from_numpy(v[:1]) for k, v in f["traj_1"]["env_states"]["articulations"].items()}
+            start = torch.from_numpy(f["traj_1"]["obs"][0])
+        if num_envs == 1:
+            td = env.reset(set_state=True, env_states={"actors": first, "articulations": arts})
+            assert torch.equal(td["observation"][0], start)
+    finally:
+        env.close()

@@ -2,12 +2,14 @@
 
 from maniskill_torchrl.transforms.action_repeat import ActionRepeat
 from maniskill_torchrl.transforms.cpu_unbatch import CPUUnbatch
+from maniskill_torchrl.transforms.env_states import EnvStates
 from maniskill_torchrl.transforms.episode_metrics import EpisodeMetrics
 from maniskill_torchrl.transforms.terminations import IgnoreTerminations
 
 __all__ = [
     "ActionRepeat",
     "CPUUnbatch",
+    "EnvStates",
     "EpisodeMetrics",
     "IgnoreTerminations",
 ]
