@@ -107,7 +107,15 @@ def save_trajectories(path: str | Path, rollout: TensorDictBase, env: Any) -> li
             _write(group, "actions", ep["action"])
             _write(group, "terminated", ep["next", "terminated"].reshape(-1))
             _write(group, "truncated", ep["next", "truncated"].reshape(-1))
-            info = {"episode_id": k, "control_mode": control_mode, "elapsed_steps": stop - start, "reset_kwargs": {}}
+            # The rollout does not know its reset seeds: ManiSkill's replay_trajectory then needs
+            # --use-env-states (record them with EnvStates) to reproduce the episode.
+            info = {
+                "episode_id": k,
+                "episode_seed": None,
+                "control_mode": control_mode,
+                "elapsed_steps": stop - start,
+                "reset_kwargs": {},
+            }
             for flag in ("success", "fail"):
                 if flag in infos:
                     values = ep["next", flag].reshape(-1)
