@@ -49,6 +49,7 @@ _EXPORTS = {
     "CPUVectorEnv": "maniskill_torchrl.cpu_vector",
     "ActionRepeat": "maniskill_torchrl.transforms",
     "CPUUnbatch": "maniskill_torchrl.transforms",
+    "EnvStates": "maniskill_torchrl.transforms",
     "EpisodeMetrics": "maniskill_torchrl.transforms",
     "IgnoreTerminations": "maniskill_torchrl.transforms",
 }
@@ -61,6 +62,7 @@ if TYPE_CHECKING:
     from maniskill_torchrl.transforms import (
         ActionRepeat,
         CPUUnbatch,
+        EnvStates,
         EpisodeMetrics,
         IgnoreTerminations,
     )

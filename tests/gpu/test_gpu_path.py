@@ -147,3 +147,25 @@ def test_maniskill_vector_env_without_auto_reset():
             assert any("env_idx" in (r["options"] or {}) for r in resets[1:]), "expected partial resets"
     finally:
         env.close()
+
+
+def test_partial_reset_to_saved_states():
+    """env.get_state() then a masked env.reset(td, set_state=True, env_states=...): the masked envs
+    get their saved observation back, the others keep theirs (ManiSkill's reset_to_env_states with
+    the rows of the envs being reset)."""
+    env = ManiSkillEnv("MS-CartpoleBalance-v1", num_envs=NUM_ENVS, obs_mode="state", sim_backend=SIM_BACKEND)
+    try:
+        start = env.reset(seed=SEED)
+        saved = env.get_state()
+        assert saved.batch_size == env.batch_size and saved.device == env.device
+        td = start
+        for a in actions(env.base_env.single_action_space, env.device, 3, seed=6):
+            td = env.step(td.set("action", a))["next"]
+        now = td["observation"].clone()
+        mask = (torch.arange(NUM_ENVS, device=env.device) % 2 == 0).unsqueeze(-1)
+        back = env.reset(td.clone().set("_reset", mask), set_state=True, env_states=saved)
+        m = mask.squeeze(-1)
+        assert torch.equal(back["observation"][m], start["observation"][m])
+        assert torch.equal(back["observation"][~m], now[~m])
+    finally:
+        env.close()
