@@ -118,10 +118,6 @@ def test_check_maniskill_env_fails_where_the_library_is_wrong(monkeypatch):
         check_maniskill_env("PickCube-v1", steps=5, obs_mode="state")
 
 
-def test_check_maniskill_env_batched_cpu_env():
-    check_maniskill_env("PushCube-v1", steps=12, num_envs=2, sim_backend="cpu", obs_mode="state", max_episode_steps=6)
-
-
 # ----------------------------------------------------------------------------- the reward rule
 @pytest.mark.parametrize("env_id", ["DrawTriangle-v1", "RotateValveLevel0-v1", "TestBoolRewardPushCube-v1"])
 def test_rewards_are_float32_on_every_path(env_id):
