@@ -65,6 +65,15 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(1)
     print(machine_line())
+
+    def compare(title: str, contenders: list, unit: str) -> None:
+        """Interleaved rounds, the table against the first contender, and units/s per contender."""
+        results = interleave(contenders, rounds=args.rounds, warmup=1, clock="cpu")
+        print(f"\n{title}")
+        print(report(results, baseline=contenders[0].name, unit=unit))
+        for name, res in results.items():
+            print(f"  {name}: {1 / res.median:,.0f} {unit}s/s")
+
     work = Path(tempfile.mkdtemp(prefix="bench_demos-"))
     try:
         path = work / "trajectory.h5"
@@ -93,20 +102,15 @@ def main(argv: list[str] | None = None) -> int:
         import tqdm as _tqdm  # ManiSkill's loader prints a progress bar per load
 
         _tqdm.tqdm.__init__.__kwdefaults__ = {**(_tqdm.tqdm.__init__.__kwdefaults__ or {}), "disable": True}
-        results = interleave(
+        compare(
+            "loading",
             [
                 Contender("ManiSkillTrajectoryDataset", load_maniskill),
                 Contender("ManiSkillExperienceReplay, first load", load_ours_first),
                 Contender("ManiSkillExperienceReplay, cached", load_ours_cached),
             ],
-            rounds=args.rounds,
-            warmup=1,
-            clock="cpu",
+            "episode",
         )
-        print("\nloading")
-        print(report(results, baseline="ManiSkillTrajectoryDataset", unit="episode"))
-        for name, res in results.items():
-            print(f"  {name}: {1 / res.median:,.0f} episodes/s")
 
         dataset = ManiSkillTrajectoryDataset(str(path))
         loader = iter(DataLoader(dataset, batch_size=256, shuffle=True, drop_last=True))
@@ -133,20 +137,15 @@ def main(argv: list[str] | None = None) -> int:
 
             return run
 
-        results = interleave(
+        compare(
+            "sampling, batch 256",
             [
                 Contender("DataLoader(ManiSkillTrajectoryDataset)", sample_loader),
                 Contender("ManiSkillExperienceReplay.sample()", sample(ours)),
                 Contender("ManiSkillExperienceReplay + SliceSampler(16)", sample(slices)),
             ],
-            rounds=args.rounds,
-            warmup=1,
-            clock="cpu",
+            "transition",
         )
-        print("\nsampling, batch 256")
-        print(report(results, baseline="DataLoader(ManiSkillTrajectoryDataset)", unit="transition"))
-        for name, res in results.items():
-            print(f"  {name}: {1 / res.median:,.0f} transitions/s")
     finally:
         shutil.rmtree(work, ignore_errors=True)
     return 0
