@@ -9,7 +9,7 @@ from typing import Any
 __all__ = ["DEFAULT_ENV", "UsageError", "build_parser", "validate_demo_args"]
 
 DEFAULT_ENV = "PickCube-v1"
-# CPU rendering costs grow with the frame size (README, "CPU rendering and GPU notes"):
+# CPU rendering costs grow with the frame size (docs/guides/cpu_and_gpu.md):
 # ManiSkill's 512 px default is much slower than this.
 DEFAULT_VIDEO_SIZE = 256
 
