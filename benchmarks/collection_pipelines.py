@@ -209,7 +209,7 @@ def batched_collector(n: int, repeat: int, opts: dict):
 
 
 def collector_options(env, opts: dict) -> tuple:
-    """The policy and Collector keywords that ``batched``'s options ask for (docs/guides/torchrl.md, "Fast collection")."""
+    """The policy and Collector keywords that ``batched``'s options ask for (docs/guides/torchrl.md)."""
     policy, kwargs = None, {}
     if "rp" in opts:  # the leaf action spec: RandomPolicy skips Composite.rand (root cause 4)
         from torchrl.modules import RandomPolicy
