@@ -1,6 +1,6 @@
 # maniskill_torchrl developer targets. Run `make` for help.
 .DEFAULT_GOAL := help
-.PHONY: help setup test test-registry test-nightly lint demo bench clean gpu-kit
+.PHONY: help setup test test-registry test-nightly lint docs demo bench clean gpu-kit
 
 # MANISKILL=release (default: mani-skill 3.0.x, in .venv) or nightly (mani-skill-nightly, in .venv-nightly).
 MANISKILL   ?= release
@@ -14,11 +14,13 @@ DEMO_ARGS   ?=
 
 help:
 	@echo "Targets:"
-	@echo "  make setup   create .venv and install the package (+ test, demo, distributed, maniskill extras); checks Vulkan"
+	@echo "  make setup   create .venv and install the package (+ test, demo, distributed, docs, maniskill extras); checks Vulkan"
 	@echo "  make test    run the test suite (PYTEST_ARGS=... passed to pytest)"
 	@echo "  make test-registry  every task of ManiSkill's registry whose assets are here (tests/registry)"
 	@echo "               MANISKILL=nightly: against mani-skill-nightly, in .venv-nightly (= make test-nightly)"
 	@echo "  make lint    ruff check + ruff format --check"
+	@echo "  make docs    build the docs site into docs/_build/html (warnings are errors), then run every"
+	@echo "               Python block of README.md and docs/ (sybil) and the site checks (tests/docs)"
 	@echo "  make demo    run the demo CLI (DEMO_ARGS=... passed to 'maniskill-torchrl demo')"
 	@echo "  make bench   run benchmarks/run_all.py"
 	@echo "  make gpu-kit fill .gpu/ with the wheels and .debs for the GPU checks (benchmarks/README.md)"
@@ -28,7 +30,7 @@ setup:
 	@MANISKILL=$(MANISKILL) bash scripts/setup.sh
 
 test: setup lint
-	$(VENV)/bin/python -m pytest -q --durations=15 tests --ignore=tests/registry $(PYTEST_ARGS)
+	$(VENV)/bin/python -m pytest -q --durations=15 tests --ignore=tests/registry --ignore=tests/docs $(PYTEST_ARGS)
 
 test-registry: setup
 	$(VENV)/bin/python -m pytest -q -rs --durations=10 tests/registry $(PYTEST_ARGS)
@@ -38,6 +40,11 @@ test-nightly:
 
 lint: setup
 	@rc=0; $(VENV)/bin/ruff check . || rc=1; $(VENV)/bin/ruff format --check . || rc=1; exit $$rc
+
+# -E: every page is read again, so a warning is never hidden by an earlier build.
+docs: setup
+	$(VENV)/bin/sphinx-build -E -W --keep-going -n -q -b html docs docs/_build/html
+	$(VENV)/bin/python -m pytest -q --durations=10 README.md docs tests/docs --ignore=docs/_build $(PYTEST_ARGS)
 
 demo: setup
 	$(VENV)/bin/maniskill-torchrl demo $(DEMO_ARGS)

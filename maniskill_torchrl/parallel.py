@@ -29,7 +29,7 @@ the batched env ``ManiSkillEnv(id, num_envs=N)`` or
    method says, unless ``mp_start_method`` is given. Python pins that global to ``"fork"`` the
    first time any process starts (gymnasium's ``AsyncVectorEnv(context="forkserver")``
    does), and ManiSkill workers forked from a parent that has built a ManiSkill env hang
-   forever (see :mod:`maniskill_torchrl._mp`).
+   forever (see ``maniskill_torchrl._mp``).
 4. **Forking a parent that holds a SAPIEN renderer fails at once** with a ``RuntimeError``
    that says what to do, instead of hanging (``mp_start_method="fork"`` after a ManiSkill env
    was built in this process).
@@ -38,7 +38,7 @@ Everything else (specs, seeding, ``"_reset"`` / ``"_step"`` masks, collectors, `
 TorchRL's: the data are the same as ``torchrl.envs.ParallelEnv``'s, bit for bit. It overrides
 two private hooks of ``torchrl.envs.ParallelEnv`` 0.14, ``_wait_for_workers`` and
 ``_start_workers`` (wrapped); the private attributes it reads as TorchRL's own wait does go
-through :mod:`maniskill_torchrl._private`.
+through ``maniskill_torchrl._private``.
 
 Examples:
     >>> from maniskill_torchrl import ManiSkillEnv
@@ -171,7 +171,7 @@ class ParallelEnv(_TorchRLParallelEnv):
 
     @property
     def wait(self) -> str:
-        """The wait strategy in use: ``"sleep"`` or ``"spin"``."""
+        """``"sleep"`` or ``"spin"``, the wait strategy in use."""
         return "sleep" if self._sleeps else "spin"
 
     def _start_workers(self) -> None:

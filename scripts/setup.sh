@@ -5,7 +5,7 @@
 #
 # 1. Creates .venv at the repo root (python3 -m venv) if missing.
 # 2. Installs torch==2.13.0 (pinned; the CPU wheel comes from the pip
-#    config's find-links) and `pip install -e ".[test,demo,distributed,maniskill]"`
+#    config's find-links) and `pip install -e ".[test,demo,distributed,docs,maniskill]"`
 #    (the `maniskill` extra: the ManiSkill 3.0.x release) in one pip call, then
 #    byte-compiles site-packages on all cores (pip --no-compile + compileall -j 0).
 #    The torch pin (or the torch already installed) is passed to pip as a constraint,
@@ -35,7 +35,7 @@ cd "$(dirname "${BASH_SOURCE[0]}")/.."
 
 TORCH_PIN="torch==2.13.0"
 # Both are part of the stamp (this script's hash): changing them reinstalls.
-EXTRAS="test,demo,distributed"
+EXTRAS="test,demo,distributed,docs"
 NIGHTLY_SPEC="${MANISKILL_NIGHTLY_SPEC:-mani-skill-nightly>=2026.8,<2026.9}"
 
 log() { echo "setup: $*"; }

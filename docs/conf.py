@@ -1,0 +1,123 @@
+"""Sphinx configuration of the maniskill_torchrl docs (``make docs``)."""
+
+from __future__ import annotations
+
+import os
+import sys
+
+sys.path.insert(0, os.path.abspath(".."))
+
+import maniskill_torchrl  # noqa: E402
+
+project = "maniskill_torchrl"
+author = "maniskill_torchrl contributors"
+release = version = maniskill_torchrl.__version__
+
+extensions = [
+    "myst_parser",
+    "sphinx.ext.autodoc",
+    "sphinx.ext.napoleon",
+    "sphinx.ext.viewcode",
+]
+
+source_suffix = {".md": "markdown"}
+root_doc = "index"
+exclude_patterns = ["_build"]
+
+myst_enable_extensions = ["colon_fence", "deflist"]
+# GitHub-style anchors for headings, so links such as results.md#ppo-... resolve.
+myst_heading_anchors = 4
+
+autodoc_member_order = "bysource"
+# Only the library's own docstrings: an override of a TorchRL / gymnasium method without one of
+# its own is not listed with the base class's text.
+autodoc_inherit_docstrings = False
+autodoc_typehints = "signature"
+autodoc_class_signature = "mixed"
+autodoc_default_options = {"members": True, "show-inheritance": True}
+napoleon_google_docstring = True
+napoleon_numpy_docstring = False
+# One field list per section, names in bold: "a, b, c: as in X" (several arguments on one line)
+# then reads as written, and the types stay text rather than references.
+napoleon_use_param = False
+napoleon_use_rtype = False
+napoleon_use_keyword = False
+
+# Warnings are errors (make docs: -W --keep-going) and every reference is checked (nitpicky),
+# except references into other projects: no inventory of theirs can be fetched here, so names
+# from the standard library, torch, TorchRL, tensordict, gymnasium, numpy and ManiSkill are
+# taken as they are. A broken reference to this library's own names fails the build.
+nitpicky = True
+nitpick_ignore_regex = [
+    (r"py:.*", r"(torch|torchrl|tensordict|gymnasium|gym|numpy|np|mani_skill|sapien|h5py|ray)(\..*)?"),
+    (r"py:.*", r"(typing|collections|os|pathlib|multiprocessing|concurrent|enum|abc|types)\..*"),
+    (
+        r"py:class",
+        r"(int|float|str|bool|bytes|object|dict|list|tuple|set|type|slice|Callable|Sequence"
+        r"|Mapping|Iterable|Iterator|Any|Path|Literal|Ellipsis|EllipsisType|NoneType|optional)",
+    ),
+    (r"py:exc", r"[A-Za-z]+(Error|Exception|Warning)"),
+    # Third-party names that the code imports under TYPE_CHECKING (string annotations).
+    (r"py:class", r"(BaseEnv|NestedKey|TensorSpec|Composite|TensorDictBase|TensorDict|EnvBase|Transform)"),
+    # The wrapper's private mixin, shown as a base class.
+    (r"py:class", r"maniskill_torchrl\.maniskill_layout\.ManiSkillLayout"),
+]
+
+
+# The public classes are documented where users import them (``maniskill_torchrl.ActionRepeat``,
+# ``maniskill_torchrl.CPUVectorEnv``), while docstrings also name them by the modules that define
+# or re-export them (``maniskill_torchrl.transforms.ActionRepeat``): those references resolve to
+# the documented object. A reference to a member that a class inherits from another project
+# (``EnvBase.set_seed``, ``gym.Wrapper.env``, ``ReplayBuffer.sample``) is taken as it is, as the
+# references into other projects above are.
+def _aliases() -> dict[str, str]:
+    import importlib
+
+    aliases = {}
+    for name, module in maniskill_torchrl._EXPORTS.items():
+        obj = getattr(importlib.import_module(module), name)
+        for path in (module, obj.__module__, "maniskill_torchrl.transforms"):
+            aliases[f"{path}.{name}"] = f"maniskill_torchrl.{name}"
+    return aliases
+
+
+def _inherited_from_elsewhere(node) -> bool:
+    import importlib
+
+    cls_name, target = node.get("py:class"), node.get("reftarget", "")
+    module = node.get("py:module")
+    if not cls_name or not module or "." in target:
+        return False
+    try:
+        cls = getattr(importlib.import_module(module), cls_name.split(".")[0])
+    except (ImportError, AttributeError):
+        return False
+    for base in getattr(cls, "__mro__", ()):
+        if target in vars(base):
+            return not base.__module__.startswith("maniskill_torchrl")
+    return False
+
+
+def _missing_reference(app, env, node, contnode):
+    if node.get("refdomain") != "py":
+        return None
+    target = node.get("reftarget", "")
+    aliases = app.config._maniskill_aliases
+    for alias, canonical in aliases.items():
+        if target == alias or target.startswith(alias + "."):
+            domain = env.get_domain("py")
+            return domain.resolve_xref(
+                env, node["refdoc"], app.builder, node["reftype"], canonical + target[len(alias) :], node, contnode
+            )
+    if _inherited_from_elsewhere(node):
+        return contnode
+    return None
+
+
+def setup(app):
+    app.config._maniskill_aliases = _aliases()
+    app.connect("missing-reference", _missing_reference)
+
+
+html_theme = "furo"
+html_title = f"maniskill_torchrl {release}"
