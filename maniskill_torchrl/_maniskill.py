@@ -6,7 +6,9 @@ auto-resets)."""
 from __future__ import annotations
 
 import contextlib
+import functools
 import inspect
+import platform
 import zipfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -18,6 +20,7 @@ __all__ = [
     "auto_resetting_wrapper",
     "canonical_device",
     "check_assets",
+    "default_render_backend",
     "enable_physx_gpu",
     "ignores_terminations",
     "missing_assets",
@@ -47,6 +50,34 @@ def quiet_maniskill() -> None:
 
     if not any(isinstance(f, _NoCudaRenderWarning) for f in logger.filters):
         logger.addFilter(_NoCudaRenderWarning())
+
+
+@functools.lru_cache(maxsize=1)
+def _no_cuda_render_device() -> bool:
+    """Whether SAPIEN finds no CUDA device to render with: the probe ManiSkill makes for its
+    default ``render_backend="gpu"``, with the same call and the same error (once per process)."""
+    import sapien
+
+    try:
+        sapien.Device("cuda")
+    except RuntimeError as e:
+        return str(e) == 'failed to find device "cuda"'
+    return False
+
+
+def default_render_backend(maniskill_kwargs: dict) -> dict:
+    """``maniskill_kwargs`` for ``gym.make``, with ``render_backend="cpu"`` when the caller named no
+    ``render_backend`` and SAPIEN finds no CUDA device.
+
+    ManiSkill's default, ``"gpu"``, then falls back to the CPU anyway, after warning "Requested to
+    use render device "sapien_cuda", but CUDA device was not found" for every env (every CPU
+    worker included): asking for the device that exists gives the same env without the warning.
+    A machine with CUDA, macOS (where ManiSkill picks the CPU itself) and an explicit
+    ``render_backend`` are left as they are. Returns a new dict; the argument is not changed.
+    """
+    if "render_backend" in maniskill_kwargs or platform.system() == "Darwin" or not _no_cuda_render_device():
+        return maniskill_kwargs
+    return {**maniskill_kwargs, "render_backend": "cpu"}
 
 
 class _NoCudaRenderWarning:

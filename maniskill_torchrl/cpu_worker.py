@@ -24,7 +24,13 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from maniskill_torchrl._maniskill import maniskill_base_env, no_asset_prompt, render_frame_shape, wrapper_attr
+from maniskill_torchrl._maniskill import (
+    default_render_backend,
+    maniskill_base_env,
+    no_asset_prompt,
+    render_frame_shape,
+    wrapper_attr,
+)
 
 __all__ = [
     "OBS",
@@ -231,7 +237,8 @@ class MakeWorker:
         import mani_skill.envs  # noqa: F401  (registers the tasks in the worker)
 
         with no_asset_prompt(self.env_id):  # a worker has no terminal to answer ManiSkill's prompt
-            return StepInObservation(gym.make(self.env_id, num_envs=1, **self.kwargs), self.index)
+            kwargs = default_render_backend(self.kwargs)
+            return StepInObservation(gym.make(self.env_id, num_envs=1, **kwargs), self.index)
 
 
 def _batch_scheduling() -> None:

@@ -12,6 +12,7 @@ from torchrl.data.utils import DEVICE_TYPING
 
 from maniskill_torchrl._maniskill import (
     check_assets,
+    default_render_backend,
     enable_physx_gpu,
     no_asset_prompt,
     registered_env_ids,
@@ -117,7 +118,7 @@ class ManiSkillEnv(ManiSkillWrapper):
                     )
                 enable_physx_gpu()
             with no_asset_prompt(env_id):
-                env = gym.make(env_id, num_envs=num_envs, **maniskill_kwargs)
+                env = gym.make(env_id, num_envs=num_envs, **default_render_backend(maniskill_kwargs))
         if inference_mode is None:  # this class owns the ManiSkill env: inference mode on the CPU sim
             inference_mode = on_cpu
         super().__init__(

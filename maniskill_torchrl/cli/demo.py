@@ -117,8 +117,11 @@ def _collect(args: argparse.Namespace, policy_name: str, env_kwargs: dict[str, A
         # env (seconds of worker teardown) before it hands over the last batch.
         total_frames=-1,
         # Neither policy has parameters, so neither has a device: without one the Collector
-        # casts its carrier to the env's device at every step.
+        # casts its carrier to the env's device at every step. trust_policy: the Collector
+        # takes the policy as running on that device (it has nothing to move there) instead
+        # of warning that it found no parameter.
         device=env.device,
+        trust_policy=True,
         # Neither policy keeps a recurrent state: no InitTracker needed.
         auto_register_policy_transforms=False,
     )
