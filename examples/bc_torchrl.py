@@ -263,7 +263,7 @@ def with_history(env: EnvBase, obs_horizon: int) -> TransformedEnv:
 
 # --------------------------------------------------------------------------- training
 def evaluate(args: argparse.Namespace, policy: nn.Module, settings: dict[str, Any]) -> dict[str, float]:
-    from ppo_torchrl import evaluate_policy, make_eval_env  # shared with the PPO example
+    from evaluation import evaluate_policy, make_eval_env  # shared with the PPO and SAC examples
 
     env = with_history(
         make_eval_env(

@@ -15,8 +15,8 @@ TanhNormal's ``tanh(loc)`` scaled to the action bounds), episode ``k`` seeded
 ``--seed + k``. ``--video PATH`` writes the first ``--video-episodes`` episodes
 to an mp4 (sub-envs made with ``render_mode="rgb_array"``, the task's default
 render camera). ``--backend torchrl`` runs the same evaluation on the TorchRL
-side instead: ``ppo_torchrl.make_eval_env`` (``ManiSkillEnv(num_envs=N) ->
-IgnoreTerminations -> EpisodeMetrics``) and ``ppo_torchrl.evaluate_policy``,
+side instead: ``evaluation.make_eval_env`` (``ManiSkillEnv(num_envs=N) ->
+IgnoreTerminations -> EpisodeMetrics``) and ``evaluation.evaluate_policy``,
 which print the averages; on the same seeds both backends give the same numbers.
 
 The vector env uses ``context="forkserver"``: gymnasium's default ``fork``
@@ -118,7 +118,7 @@ def evaluate_checkpoint(args: argparse.Namespace, ckpt: dict[str, Any]) -> list[
 
     Episodes run in rounds of ``num_envs``: each round starts with
     ``envs.reset(seed=args.seed + first)`` (sub-env ``i`` gets ``seed + first + i``), so
-    episode ``k`` is seeded ``seed + k``, as in ``ppo_torchrl.evaluate_policy``. With
+    episode ``k`` is seeded ``seed + k``, as in ``evaluation.evaluate_policy``. With
     ``ignore_terminations=True`` all sub-envs of a round end together, at the time limit.
     """
     from ppo_checkpoint import numpy_policy, policy_from_checkpoint, specs_from_spaces
@@ -183,7 +183,7 @@ def _write_video(path: str, frames: list[np.ndarray], fps: int) -> None:
 
 
 def evaluate_torchrl(args: argparse.Namespace, ckpt: dict[str, Any]) -> dict[str, float]:
-    """The same evaluation on the TorchRL side: ``ppo_torchrl.make_eval_env`` + ``evaluate_policy``.
+    """The same evaluation on the TorchRL side: ``evaluation.make_eval_env`` + ``evaluate_policy``.
 
     Same sub-env seeds (episode ``k``: ``seed + k``), same observations, same deterministic
     actions from the same network at the same batch size: the averages equal the gym backend's.
@@ -192,8 +192,8 @@ def evaluate_torchrl(args: argparse.Namespace, ckpt: dict[str, Any]) -> dict[str
 
     import torch
 
+    from evaluation import evaluate_policy, make_eval_env
     from ppo_checkpoint import policy_from_checkpoint
-    from ppo_torchrl import evaluate_policy, make_eval_env
 
     env_kwargs: dict[str, Any] = {"obs_mode": args.obs_mode, "control_mode": args.control_mode}
     if args.max_episode_steps is not None:

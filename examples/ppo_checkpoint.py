@@ -1,4 +1,5 @@
-"""The checkpoint ``examples/ppo_torchrl.py`` saves: loading, checking, and the policy it holds.
+"""The checkpoints ``examples/ppo_torchrl.py`` and ``examples/sac_torchrl.py`` save: loading, checking,
+and the policy they hold (both a TanhNormal actor reading ``"observation"``; ``format`` says which).
 
 One implementation for the evaluation scripts (``evaluate_gym.py``, both its
 gym and its TorchRL backend):
@@ -6,7 +7,7 @@ gym and its TorchRL backend):
 - :func:`load_checkpoint` reads ``<out>/ppo_checkpoint.pt`` and checks that it
   is one (file there, a torch file, our ``format``, the expected task), raising
   :class:`CheckpointError` with what is wrong and what to do otherwise;
-- :func:`policy_from_checkpoint` builds the actor with ``ppo_torchrl.make_models``
+- :func:`policy_from_checkpoint` builds the actor with ``ppo_torchrl.make_models`` (or SAC's)
   for the env it will act in, after checking the observation and action sizes;
 - :func:`numpy_policy` turns it into ``obs (numpy) -> action (numpy)`` for gym
   code, acting deterministically: the TanhNormal's ``tanh(loc)`` scaled to the
@@ -29,11 +30,14 @@ from tensordict import TensorDict
 
 from ppo_torchrl import CHECKPOINT_FORMAT, make_models
 
+SAC_FORMAT = "maniskill_torchrl.sac.v1"  # sac_torchrl.CHECKPOINT_FORMAT (imported lazily: torchrl's SAC)
+FORMATS = (CHECKPOINT_FORMAT, SAC_FORMAT)
 CHECKPOINT_NAME = "ppo_checkpoint.pt"
+CHECKPOINT_NAMES = (CHECKPOINT_NAME, "sac_checkpoint.pt")
 REQUIRED_KEYS = ("env_id", "obs_mode", "control_mode", "obs_dim", "act_dim", "hidden", "repeat", "policy")
 _WHAT_TO_PASS = (
     f"pass the {CHECKPOINT_NAME} that examples/ppo_torchrl.py writes to its --out folder "
-    f"(default outputs/ppo/{CHECKPOINT_NAME})"
+    f"(default outputs/ppo/{CHECKPOINT_NAME}), or the sac_checkpoint.pt of examples/sac_torchrl.py"
 )
 
 
@@ -51,9 +55,10 @@ def load_checkpoint(path: str | Path, env_id: str | None = None) -> dict[str, An
     """
     path = Path(path)
     if path.is_dir():
-        if not (path / CHECKPOINT_NAME).is_file():
-            raise CheckpointError(f"checkpoint folder {path} has no {CHECKPOINT_NAME}: {_WHAT_TO_PASS}")
-        path = path / CHECKPOINT_NAME
+        found = [path / name for name in CHECKPOINT_NAMES if (path / name).is_file()]
+        if not found:
+            raise CheckpointError(f"checkpoint folder {path} has no {' or '.join(CHECKPOINT_NAMES)}: {_WHAT_TO_PASS}")
+        path = found[0]
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path} not found: {_WHAT_TO_PASS}")
     try:
@@ -72,9 +77,9 @@ def load_checkpoint(path: str | Path, env_id: str | None = None) -> dict[str, An
             f"{CHECKPOINT_FORMAT!r}). A bare state_dict, e.g. from ManiSkill's own PPO baseline, "
             f"holds no task or network sizes: evaluate it with that baseline, or {_WHAT_TO_PASS}"
         )
-    if ckpt["format"] != CHECKPOINT_FORMAT:
+    if ckpt["format"] not in FORMATS:
         raise CheckpointError(
-            f"{path} has checkpoint format {ckpt['format']!r}; this script reads {CHECKPOINT_FORMAT!r}: "
+            f"{path} has checkpoint format {ckpt['format']!r}; this script reads {' or '.join(map(repr, FORMATS))}: "
             f"{_WHAT_TO_PASS} with this version of the examples"
         )
     missing = [k for k in REQUIRED_KEYS if k not in ckpt]
@@ -140,14 +145,19 @@ def policy_from_checkpoint(ckpt: dict[str, Any], env: Any, control_mode: str | N
     obs_dim = env.observation_spec["observation"].shape[-1]
     act_dim = env.action_spec_unbatched.shape[-1]
     check_sizes(ckpt, obs_dim, act_dim, control_mode)
-    policy, _ = make_models(env, ckpt["hidden"], torch.device("cpu"))
+    if ckpt["format"] == SAC_FORMAT:
+        from sac_torchrl import make_models as make_sac_models
+
+        policy, _ = make_sac_models(obs_dim, env.action_spec_unbatched, ckpt["hidden"], torch.device("cpu"))
+    else:
+        policy, _ = make_models(env, ckpt["hidden"], torch.device("cpu"))
     try:
         policy.load_state_dict(ckpt["policy"])
     except (RuntimeError, KeyError) as exc:
         raise CheckpointError(
             f"the policy weights in {ckpt.get('path', 'the checkpoint')} do not fit the actor of "
-            f"examples/ppo_torchrl.py (hidden {ckpt['hidden']}, obs {obs_dim}, act {act_dim}): "
-            f"{str(exc).splitlines()[0]}. Re-train with this version of ppo_torchrl.py"
+            f"examples/{ckpt.get('algorithm', 'ppo')}_torchrl.py (hidden {ckpt['hidden']}, obs {obs_dim}, "
+            f"act {act_dim}): {str(exc).splitlines()[0]}. Re-train with this version of the example"
         ) from exc
     return policy.eval()
 

@@ -55,11 +55,12 @@ from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
 from torchrl.envs import EnvBase, ParallelEnv, SerialEnv
-from torchrl.envs.utils import ExplorationType, RandomPolicy, set_exploration_type
+from torchrl.envs.utils import ExplorationType
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
+from evaluation import episode_stats, evaluate_policy, make_eval_env, time_limit  # noqa: F401 (names kept here)
 from maniskill_torchrl.pipeline import make_env as make_pipeline
 
 CHECKPOINT_FORMAT = "maniskill_torchrl.ppo.v1"
@@ -102,62 +103,7 @@ def make_env(args: argparse.Namespace, device: torch.device) -> EnvBase:
 
 
 def _time_limit(args: argparse.Namespace) -> int:
-    """The task's episode length: --max-episode-steps, else the registered time limit."""
-    if args.max_episode_steps is not None:
-        return args.max_episode_steps
-    import gymnasium as gym
-    import mani_skill.envs  # noqa: F401  (registers the tasks)
-
-    limit = gym.spec(args.env_id).max_episode_steps
-    if limit is None:
-        raise SystemExit(f"{args.env_id} has no registered time limit: pass --max-episode-steps to evaluate it")
-    return limit
-
-
-def make_eval_env(env_id: str, num_envs: int, device: torch.device, repeat: int = 1, **env_kwargs: Any) -> EnvBase:
-    """The evaluation env, as ManiSkill's PPO baseline evaluates: episodes run to the time limit
-    (``IgnoreTerminations``), ``EpisodeMetrics`` reports success_once / success_at_end / return."""
-    backend = "gpu" if device.type == "cuda" else "physx_cpu"
-    return make_pipeline(
-        env_id, num_envs=num_envs, repeat=repeat, ignore_terminations=True, sim_backend=backend, **env_kwargs
-    )
-
-
-@torch.no_grad()
-def evaluate_policy(
-    env: EnvBase,
-    policy: Any,
-    episodes: int,
-    seed: int,
-    max_steps: int,
-    exploration: ExplorationType = ExplorationType.DETERMINISTIC,
-) -> dict[str, float]:
-    """Runs ``episodes`` full episodes, seeded ``seed``, ``seed + 1``, ...; the policy acts
-    deterministically (the TanhNormal's ``tanh(loc)``), or samples with
-    ``exploration=ExplorationType.RANDOM``. ``policy=None``: uniform random actions.
-
-    Returns the means of ``success_once``, ``success_at_end`` and ``return`` (and ``episodes``).
-    ``max_steps``: agent steps per episode (the time limit divided by any ActionRepeat)."""
-    n = env.batch_size.numel()
-    acting = RandomPolicy(env.full_action_spec) if policy is None else policy
-    finished = []
-    for first in range(0, episodes, n):
-        env.set_seed(seed + first)  # sub-env i starts with seed + first + i
-        with set_exploration_type(exploration):
-            rollout = env.rollout(max_steps, acting, break_when_any_done=False)
-        done = rollout.get(("next", "done")).squeeze(-1)
-        if not bool(done[..., -1].all()):
-            raise RuntimeError(
-                f"evaluation episodes did not end after {max_steps} steps: pass the task's time limit "
-                "(--max-episode-steps) divided by the ActionRepeat"
-            )
-        finished.append(rollout.get(("next", "episode"))[..., -1])
-    ep = torch.cat(finished)[:episodes]
-    out = {"episodes": float(ep.batch_size[0])}
-    for key in ("success_once", "success_at_end", "return"):
-        if key in ep.keys():
-            out[key] = ep.get(key).float().mean().item()
-    return out
+    return time_limit(args.env_id, args.max_episode_steps)
 
 
 # --------------------------------------------------------------------------- models
@@ -271,22 +217,6 @@ def ppo_update(
 
 
 # ------------------------------------------------------------------------- logging
-def episode_stats(batch: TensorDictBase) -> dict[str, float]:
-    """Means of EpisodeMetrics' ``("next", "episode")`` entries over the episodes that ended in ``batch``."""
-    done = batch.get(("next", "done")).squeeze(-1)
-    n = int(done.sum())
-    out: dict[str, float] = {"episodes": n}
-    if n == 0:
-        return out
-    ep = batch.get(("next", "episode"))[done]
-    out["return"] = ep.get("return").float().mean().item()
-    out["episode_len"] = ep.get("episode_len").float().mean().item()
-    for key in ("success_once", "success_at_end", "fail_once"):
-        if key in ep.keys():
-            out[key] = ep.get(key).float().mean().item()
-    return out
-
-
 # ---------------------------------------------------------------------------- train
 def train(args: argparse.Namespace) -> dict[str, Any]:
     """Runs PPO; returns the last iteration's log record."""

@@ -40,7 +40,7 @@ fi
 
 if [[ ! -f "$NUMPY1/numpy/__init__.py" ]]; then
     log "installing numpy<2 into $NUMPY1 (for mplib only)"
-    "$PY" -m pip install -q --target "$NUMPY1" "numpy<2"
+    "$PY" -m pip install -q --no-warn-conflicts --target "$NUMPY1" "numpy<2"
 fi
 
 rm -rf "$dir"
