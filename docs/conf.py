@@ -11,6 +11,7 @@ import maniskill_torchrl  # noqa: E402
 
 project = "maniskill_torchrl"
 author = "maniskill_torchrl contributors"
+copyright = "maniskill_torchrl contributors, Apache-2.0"
 release = version = maniskill_torchrl.__version__
 
 extensions = [
@@ -59,8 +60,6 @@ nitpick_ignore_regex = [
     (r"py:exc", r"[A-Za-z]+(Error|Exception|Warning)"),
     # Third-party names that the code imports under TYPE_CHECKING (string annotations).
     (r"py:class", r"(BaseEnv|NestedKey|TensorSpec|Composite|TensorDictBase|TensorDict|EnvBase|Transform)"),
-    # The wrapper's private mixin, shown as a base class.
-    (r"py:class", r"maniskill_torchrl\.maniskill_layout\.ManiSkillLayout"),
 ]
 
 
@@ -114,9 +113,34 @@ def _missing_reference(app, env, node, contnode):
     return None
 
 
+def _init_signature(app, what, name, obj, options, signature, return_annotation):
+    # TorchRL's envs and transforms have a metaclass whose __call__(*args, **kwargs) autodoc would
+    # show as the class's signature: show __init__'s instead.
+    if what == "class" and signature == "(*args, **kwargs)":
+        from sphinx.util.inspect import signature, stringify_signature
+
+        sig = signature(obj.__init__, bound_method=True)  # without self; string annotations evaluated
+        return stringify_signature(sig, show_return_annotation=False), return_annotation
+    return None
+
+
+def _public_bases(app, name, obj, options, bases):
+    # Private bases (the wrapper's layout mixin, TorchRL's _EnvWrapper) say nothing to a reader.
+    # When every base is private, the first public class up the MRO (TorchRL's EnvBase) stands in.
+    def public(b):
+        return not b.__name__.startswith("_") and "maniskill_layout" not in b.__module__
+
+    kept = [b for b in bases if public(b)]
+    if bases and not kept:
+        kept = [next(b for b in obj.__mro__[1:] if public(b))]
+    bases[:] = kept
+
+
 def setup(app):
     app.config._maniskill_aliases = _aliases()
     app.connect("missing-reference", _missing_reference)
+    app.connect("autodoc-process-signature", _init_signature)
+    app.connect("autodoc-process-bases", _public_bases)
 
 
 html_theme = "furo"
