@@ -214,3 +214,31 @@ def test_bad_flags(argv: list[str], message: str, capsys) -> None:
         evaluate_gym.parse_args(argv)
     assert exc.value.code == 2
     assert message in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------- SAC checkpoints
+def test_sac_checkpoint_evaluates(tmp_path: Path) -> None:
+    """``sac_torchrl.save_checkpoint``'s file: found in its folder, rebuilt as SAC's actor (state-dependent
+    scale) with the saved weights, deterministic tanh(loc); the CLI evaluates it on seeded episodes."""
+    import sac_torchrl
+
+    torch.manual_seed(0)
+    env = specs()
+    actor, qnet = sac_torchrl.make_models(OBS_DIM, env.action_spec_unbatched, HIDDEN, torch.device("cpu"))
+    loss, _, _ = sac_torchrl.make_objective(sac_torchrl.parse_args(["--device", "cpu"]), actor, qnet)
+    args = sac_torchrl.parse_args(["--device", "cpu", "--env-id", ENV_ID, "--hidden", str(HIDDEN)])
+    sac_torchrl.save_checkpoint(tmp_path / "sac_checkpoint.pt", args, env, actor, loss, frames=0)
+
+    ckpt = load_checkpoint(tmp_path)  # the --out folder
+    policy = policy_from_checkpoint(ckpt, specs())
+    obs = torch.randn(3, OBS_DIM)
+    a = ppo_checkpoint.numpy_policy(policy)(obs.numpy())
+    loc = actor.module[0].module[0](obs).chunk(2, -1)[0]  # the saved actor's mean, before the tanh
+    assert torch.allclose(torch.as_tensor(a), torch.tanh(loc), atol=1e-6)
+
+    out = run(
+        [sys.executable, str(EXAMPLES / "evaluate_gym.py"), "--checkpoint", str(tmp_path), "--num-envs", "1"]
+        + ["--episodes", "2", "--max-episode-steps", "5", "--seed", "3"],
+        cwd=tmp_path,
+    ).stdout
+    assert "episodes: 2" in out and re.search(r"^avg success_once: \S+$", out, re.M), out
