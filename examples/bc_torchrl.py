@@ -125,15 +125,27 @@ def mlp(dims: list[int]) -> nn.Sequential:
 
 
 class Normalise(nn.Module):
-    """Observation-history normalisation, kept in the state dict so that the checkpoint carries it."""
+    """The observation history to zero mean and unit scale, and actions to [-1, 1] per dimension
+    (their range in the demonstrations: the arm's deltas span a few hundredths, the gripper's
+    command is +-1, so that a plain loss would hardly see the arm). Buffers: the checkpoint carries them."""
 
-    def __init__(self, mean: torch.Tensor, std: torch.Tensor, horizon: int) -> None:
+    def __init__(
+        self, obs_mean: torch.Tensor, obs_std: torch.Tensor, horizon: int, act_low: torch.Tensor, act_high: torch.Tensor
+    ) -> None:
         super().__init__()
-        self.register_buffer("mean", mean.repeat(horizon))
-        self.register_buffer("std", std.repeat(horizon))
+        self.register_buffer("mean", obs_mean.repeat(horizon))
+        self.register_buffer("std", obs_std.repeat(horizon))
+        self.register_buffer("act_center", (act_high + act_low) / 2)
+        self.register_buffer("act_scale", ((act_high - act_low) / 2).clamp_min(1e-4))
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         return (obs - self.mean) / self.std
+
+    def action(self, chunk: torch.Tensor) -> torch.Tensor:
+        return (chunk - self.act_center) / self.act_scale
+
+    def unaction(self, chunk: torch.Tensor) -> torch.Tensor:
+        return chunk * self.act_scale + self.act_center
 
 
 class ChunkMLP(nn.Module):
@@ -154,8 +166,8 @@ class ChunkMLP(nn.Module):
 class DiffusionMLP(nn.Module):
     """DDPM over the action chunk (epsilon prediction, squared-cosine schedule, as ManiSkill's
     Diffusion Policy baseline), with an MLP noise predictor conditioned on the observation history
-    and a sinusoidal embedding of the diffusion step. Actions are in [-1, 1] (normalised control
-    modes), so samples are clipped there."""
+    and a sinusoidal embedding of the diffusion step. Actions arrive normalised to [-1, 1]
+    (:class:`Normalise`), so samples are clipped there."""
 
     def __init__(
         self, obs_dim: int, act_dim: int, pred_horizon: int, hidden: int, depth: int, steps: int = 100
@@ -219,20 +231,20 @@ class ChunkPolicy(nn.Module):
         self.model = model
 
     def loss(self, obs: torch.Tensor, chunk: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
-        return self.model.loss(self.normalise(obs), chunk, generator)
+        return self.model.loss(self.normalise(obs), self.normalise.action(chunk), generator)
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        return self.model(self.normalise(obs))
+        return self.normalise.unaction(self.model(self.normalise(obs)))
 
 
-def make_policy(
-    settings: dict[str, Any], obs_mean: torch.Tensor | None = None, obs_std: torch.Tensor | None = None
-) -> ChunkPolicy:
-    """The policy ``settings`` describe; without ``obs_mean`` / ``obs_std`` its normalisation is the
-    identity until a checkpoint's state dict is loaded."""
-    obs_dim = settings["obs_dim"]
-    mean = obs_mean if obs_mean is not None else torch.zeros(obs_dim)
-    std = obs_std if obs_std is not None else torch.ones(obs_dim)
+def make_policy(settings: dict[str, Any], data: ChunkDataset | None = None) -> ChunkPolicy:
+    """The policy ``settings`` describe, normalised by ``data``'s statistics; without ``data`` the
+    normalisation is the identity until a checkpoint's state dict is loaded."""
+    obs_dim, act_dim = settings["obs_dim"], settings["act_dim"]
+    if data is not None:
+        stats = (data.obs_mean, data.obs_std, data.action.amin(0), data.action.amax(0))
+    else:
+        stats = (torch.zeros(obs_dim), torch.ones(obs_dim), -torch.ones(act_dim), torch.ones(act_dim))
     cls = DiffusionMLP if settings["policy"] == "diffusion" else ChunkMLP
     model = cls(
         obs_dim * settings["obs_horizon"],
@@ -241,7 +253,8 @@ def make_policy(
         settings["hidden"],
         settings["depth"],
     )
-    return ChunkPolicy(Normalise(mean, std, settings["obs_horizon"]), model)
+    mean, std, low, high = stats
+    return ChunkPolicy(Normalise(mean, std, settings["obs_horizon"], low, high), model)
 
 
 def make_actor(policy: ChunkPolicy, settings: dict[str, Any]) -> MultiStepActorWrapper:
@@ -307,7 +320,7 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
         "hidden": args.hidden,
         "depth": args.depth,
     }
-    policy = make_policy(settings, data.obs_mean, data.obs_std)
+    policy = make_policy(settings, data)
     ema = AveragedModel(policy, multi_avg_fn=get_ema_multi_avg_fn(args.ema))
     optim = torch.optim.AdamW(policy.parameters(), lr=args.lr, weight_decay=1e-6)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(optim, args.iterations)

@@ -110,7 +110,7 @@ def test_loss_falls_on_the_demonstrations(demos, tmp_path, policy):
         "depth": 2,
     }
     torch.manual_seed(0)
-    model = bc_torchrl.make_policy(settings, data.obs_mean, data.obs_std)
+    model = bc_torchrl.make_policy(settings, data)
     optim = torch.optim.Adam(model.parameters(), lr=1e-3)
     gen = torch.Generator().manual_seed(0)
     fixed = data.sample(256, torch.Generator().manual_seed(1))
