@@ -11,10 +11,14 @@ Two policies, both reading the last ``--obs-horizon`` observations and predictin
 ``--pred-horizon`` actions, of which ``--act-horizon`` are executed before re-planning (the settings of
 ManiSkill's Diffusion Policy baseline: 2, 16, 8):
 
-- ``--policy diffusion`` (default): a small diffusion policy, DDPM with an MLP noise predictor
-  (ManiSkill's baseline uses a 1-D conv U-Net; an MLP trains in minutes on two CPU cores) and an
-  exponential moving average of its weights.
-- ``--policy mlp``: the same chunks regressed with a mean-squared error (deterministic).
+- ``--policy mlp`` (default): an MLP regressing the chunk with a mean-squared error;
+- ``--policy diffusion``: a small diffusion policy, DDPM with an MLP noise predictor (ManiSkill's
+  baseline uses a 1-D conv U-Net) and an exponential moving average of its weights; it needs many
+  more iterations than the MLP (benchmarks/RESULTS.md, "Behaviour cloning").
+
+Observations are standardised and actions scaled to [-1, 1] per dimension with the demonstrations'
+statistics (kept in the checkpoint): in ``pd_ee_delta_pos`` the arm's deltas span a few hundredths
+and the gripper's command is +-1, and without the scaling the loss hardly sees the arm.
 
 Evaluation follows ManiSkill's BC / Diffusion Policy baselines: episodes run to the time limit
 (``IgnoreTerminations``), success_once over ``--eval-episodes`` seeded episodes, and
@@ -75,7 +79,8 @@ def demo_file(args: argparse.Namespace) -> Path:
         str(out),
     ]
     print("$", " ".join(cmd), flush=True)
-    subprocess.run(cmd, check=True)
+    if subprocess.run(cmd).returncode != 0:
+        raise SystemExit(f"making the demonstrations failed (its log is under {path.parent}): {' '.join(cmd)}")
     return path
 
 
@@ -392,17 +397,17 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--demo-dir", default="demos")
     p.add_argument("--num-demos", type=int, default=1000)
     p.add_argument("--control-mode", default="pd_ee_delta_pos")
-    p.add_argument("--policy", choices=["diffusion", "mlp"], default="diffusion")
+    p.add_argument("--policy", choices=["mlp", "diffusion"], default="mlp")
     p.add_argument("--obs-horizon", type=int, default=2)
     p.add_argument("--pred-horizon", type=int, default=16)
     p.add_argument("--act-horizon", type=int, default=8)
     p.add_argument("--hidden", type=int, default=512)
     p.add_argument("--depth", type=int, default=3)
-    p.add_argument("--iterations", type=int, default=20000)
+    p.add_argument("--iterations", type=int, default=5000)
     p.add_argument("--batch-size", type=int, default=256)
     p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument("--ema", type=float, default=0.999)
-    p.add_argument("--eval-every", type=int, default=5000)
+    p.add_argument("--eval-every", type=int, default=2500)
     p.add_argument("--eval-episodes", type=int, default=100)
     p.add_argument("--eval-envs", type=int, default=2, help="batched CPU-sim envs for evaluation")
     p.add_argument("--eval-seed", type=int, default=10_000)

@@ -14,7 +14,8 @@
 #    OUT_DIR/ENV_ID/motionplanning/trajectory.state.CONTROL_MODE.physx_cpu.h5 (+ .json), the
 #    file examples/bc_torchrl.py reads. Episodes the conversion fails are dropped.
 #
-# Idempotent: a finished run for the same NUM_DEMOS (its stamp, .made-NUM_DEMOS) is kept.
+# Idempotent: a finished run of at least NUM_DEMOS demos (its stamp, .made-<count>) is kept; a
+# reader takes the first NUM_DEMOS episodes (ManiSkillExperienceReplay(num_episodes=...)).
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 
@@ -33,8 +34,9 @@ log() { echo "make_demos: $*"; }
 dir="$OUT/$ENV_ID/motionplanning"
 converted="$dir/trajectory.state.$CONTROL.physx_cpu.h5"
 count() { "$PY" -c 'import json,sys; print(len(json.load(open(sys.argv[1]))["episodes"]))' "$1" 2>/dev/null || echo 0; }
-if [[ -f "$converted" && -f "$dir/.made-$NUM" ]]; then
-    log "$converted made already (from $NUM planned demos)"
+made="$( (find "$dir" -maxdepth 1 -name '.made-*' 2>/dev/null || true) | sed 's/.*\.made-//' | sort -n | tail -1)"
+if [[ -f "$converted" && -n "$made" && "$made" -ge "$NUM" ]]; then
+    log "$converted made already (from $made planned demos)"
     exit 0
 fi
 
