@@ -18,13 +18,14 @@ from pathlib import Path
 
 
 def load(path: Path) -> tuple[list[dict], dict | None]:
-    """The policy evaluations in order (BC's records have no ``eval`` field) and the random one."""
+    """The policy evaluations in order and the random one. PPO's and SAC's evaluations say
+    ``"eval": "policy"`` (PPO's training records have none); BC's records are all evaluations."""
     evals, random = [], None
     for line in path.read_text().splitlines():
         rec = json.loads(line)
         if rec.get("eval") == "random":
             random = rec
-        elif rec.get("eval", "policy") == "policy" and "success_once" in rec:
+        elif rec.get("eval") == "policy" or ("eval" not in rec and "frames" not in rec and "success_once" in rec):
             evals.append(rec)
     if not evals:
         raise SystemExit(f"{path}: no evaluation records")
