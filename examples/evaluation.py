@@ -94,3 +94,40 @@ def episode_stats(batch: TensorDictBase) -> dict[str, float]:
         if key in ep.keys():
             out[key] = ep.get(key).float().mean().item()
     return out
+
+
+def evaluate_and_log(
+    env: EnvBase,
+    policy: Any,
+    args: Any,
+    max_steps: int,
+    log_path: Any,
+    start: float,
+    which: str,
+    frames: int,
+    **extra: Any,
+) -> dict[str, Any]:
+    """:func:`evaluate_policy` with ``args.eval_episodes`` / ``args.eval_seed``, one JSON line
+    appended to ``log_path`` (``eval``, ``frames``, ``extra``, ``wall_s`` since ``start``, ``eval_s``,
+    then the results) and one printed line; returns that record."""
+    import json
+    import time
+
+    t = time.perf_counter()
+    res = evaluate_policy(env, policy, args.eval_episodes, args.eval_seed, max_steps)
+    rec = {
+        "eval": which,
+        "frames": frames,
+        **extra,
+        "wall_s": round(time.perf_counter() - start, 1),
+        "eval_s": round(time.perf_counter() - t, 1),
+        **res,
+    }
+    with open(log_path, "a") as f:
+        f.write(json.dumps(rec) + "\n")
+    print(
+        f"eval ({which}) at {frames} frames, {rec['wall_s']:.0f} s: "
+        + ", ".join(f"{k} {v:.3f}" for k, v in res.items() if k != "episodes"),
+        flush=True,
+    )
+    return rec

@@ -60,7 +60,13 @@ from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
-from evaluation import episode_stats, evaluate_policy, make_eval_env, time_limit  # noqa: F401 (names kept here)
+from evaluation import (  # noqa: F401 (names kept here)
+    episode_stats,
+    evaluate_and_log,
+    evaluate_policy,
+    make_eval_env,
+    time_limit,
+)
 from maniskill_torchrl.pipeline import make_env as make_pipeline
 
 CHECKPOINT_FORMAT = "maniskill_torchrl.ppo.v1"
@@ -268,24 +274,10 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
         eval_steps = -(-_time_limit(args) // args.repeat)  # ceil: a last partial repeat still counts
 
         def log_eval(frames: int, train_s: float, which: str, acting: Any) -> dict[str, float]:
-            t = time.perf_counter()
-            res = evaluate_policy(eval_env, acting, args.eval_episodes, args.eval_seed, eval_steps)
-            rec = {
-                "eval": which,
-                "frames": frames,
-                "train_s": round(train_s, 1),
-                "wall_s": round(time.perf_counter() - start, 1),
-                "eval_s": round(time.perf_counter() - t, 1),
-                **res,
-            }
-            with log_path.open("a") as f:
-                f.write(json.dumps(rec) + "\n")
-            print(
-                f"eval ({which}) at {frames} frames: "
-                + ", ".join(f"{k} {v:.3f}" for k, v in res.items() if k != "episodes"),
-                flush=True,
+            rec = evaluate_and_log(
+                eval_env, acting, args, eval_steps, log_path, start, which, frames, train_s=round(train_s, 1)
             )
-            return res
+            return {k: rec[k] for k in ("episodes", "success_once", "success_at_end", "return") if k in rec}
 
         log_eval(0, 0.0, "random", None)
         log_eval(0, 0.0, "policy", policy)

@@ -32,7 +32,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
@@ -48,7 +47,7 @@ from torchrl.envs import EnvBase
 from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import SACLoss, SoftUpdate, ValueEstimators
 
-from evaluation import episode_stats, evaluate_policy, make_eval_env, time_limit
+from evaluation import episode_stats, evaluate_and_log, make_eval_env, time_limit
 from maniskill_torchrl.pipeline import make_env as make_pipeline
 
 CHECKPOINT_FORMAT = "maniskill_torchrl.sac.v1"
@@ -216,24 +215,7 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     log_path.write_text("")
 
     def log_eval(frames: int, which: str, acting: Any, timing: dict[str, float]) -> dict[str, Any]:
-        t = time.perf_counter()
-        res = evaluate_policy(eval_env, acting, args.eval_episodes, args.eval_seed, eval_steps)
-        rec = {
-            "eval": which,
-            "frames": frames,
-            "wall_s": round(time.perf_counter() - start, 1),
-            "eval_s": round(time.perf_counter() - t, 1),
-            **timing,
-            **res,
-        }
-        with log_path.open("a") as f:
-            f.write(json.dumps(rec) + "\n")
-        print(
-            f"eval ({which}) at {frames} frames, {rec['wall_s']:.0f} s: "
-            + ", ".join(f"{k} {v:.3f}" for k, v in res.items() if k != "episodes"),
-            flush=True,
-        )
-        return rec
+        return evaluate_and_log(eval_env, acting, args, eval_steps, log_path, start, which, frames, **timing)
 
     timing = {"sim_s": 0.0, "update_s": 0.0}
     log_eval(0, "random", None, timing)
