@@ -29,7 +29,10 @@ def test_built():
     assert (HTML / "index.html").is_file(), f"no site in {HTML}: run `make docs`"
 
 
-@pytest.mark.parametrize("page", ["index", "api", "results", *(f"guides/{g}" for g in GUIDES)])
+PAGES = ["index", "api", "results", "changelog", "contributing", *(f"guides/{g}" for g in GUIDES)]
+
+
+@pytest.mark.parametrize("page", PAGES)
 def test_page_built_and_linked(page):
     assert (HTML / f"{page}.html").is_file(), f"{page}.html missing from the site"
     if page != "index":  # every page is reachable from the index's table of contents
@@ -50,3 +53,9 @@ def test_api_documents_every_public_name(api_html, module):
     # the top-level names are documented where users import them (maniskill_torchrl.ActionRepeat)
     missing = [n for n in names if f'id="{module}.{n}"' not in api_html]
     assert not missing, f"api.html documents none of {module}: {missing}"
+
+
+def test_api_page_is_for_users(api_html):
+    # the internal module layout lives on the contributor page, not in the API reference
+    assert "Module layout" not in api_html
+    assert "Module layout" in (HTML / "contributing.html").read_text()
