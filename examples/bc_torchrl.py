@@ -31,6 +31,11 @@ Usage::
     python examples/bc_torchrl.py --env-id PickCube-v1            # makes the demos if missing
     python examples/bc_torchrl.py --env-id PushCube-v1 --num-demos 500
     python examples/bc_torchrl.py --smoke                         # end-to-end in about a minute
+    python examples/bc_torchrl.py --device cuda --sim-backend cpu # GPU learner, CPU-sim evaluation
+
+The learner runs on ``--device`` (default: the CPU; the policies are small) and the evaluation env is
+made with ``--sim-backend`` (``sim_device.py``: ``auto`` is the GPU sim with ``--device cuda``, else
+the CPU sim) and ``device=<--device>``, so that its observations arrive on the learner's device.
 
 Writes ``<out>/metrics.jsonl`` (one line per evaluation), ``<out>/bc_checkpoint.pt`` (the policy
 with its normalisation, settings and last evaluation) and prints one line per evaluation.
@@ -54,6 +59,7 @@ from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from torchrl.envs import CatFrames, EnvBase, InitTracker, TransformedEnv
 from torchrl.modules import MultiStepActorWrapper
 
+import sim_device
 from maniskill_torchrl.data import ManiSkillExperienceReplay
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -202,8 +208,9 @@ class DiffusionMLP(nn.Module):
 
     def loss(self, obs: torch.Tensor, chunk: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
         b = chunk.shape[0]
-        t = torch.randint(self.steps, (b,), generator=generator)
-        noise = torch.randn(chunk.shape, generator=generator)
+        # drawn on the CPU generator (the same numbers whatever the device), then moved to the data
+        t = torch.randint(self.steps, (b,), generator=generator).to(chunk.device)
+        noise = torch.randn(chunk.shape, generator=generator).to(chunk.device)
         ab = self.alpha_bar[t].view(b, 1, 1)
         noisy = ab.sqrt() * chunk + (1 - ab).sqrt() * noise
         return (self._eps(noisy, obs, t) - noise.flatten(1)).pow(2).mean()
@@ -287,7 +294,8 @@ def evaluate(args: argparse.Namespace, policy: nn.Module, settings: dict[str, An
         make_eval_env(
             args.env_id,
             args.eval_envs,
-            torch.device("cpu"),
+            torch.device(args.device),
+            sim_backend=args.sim_backend,
             obs_mode="state",
             control_mode=args.control_mode,
             max_episode_steps=args.max_episode_steps,
@@ -325,7 +333,8 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
         "hidden": args.hidden,
         "depth": args.depth,
     }
-    policy = make_policy(settings, data)
+    device = torch.device(args.device)
+    policy = make_policy(settings, data).to(device)
     ema = AveragedModel(policy, multi_avg_fn=get_ema_multi_avg_fn(args.ema))
     optim = torch.optim.AdamW(policy.parameters(), lr=args.lr, weight_decay=1e-6)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(optim, args.iterations)
@@ -335,14 +344,15 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     log = (out / "metrics.jsonl").open("w")
     print(
         f"{args.env_id}: {data.episodes} demos, {len(data)} steps ({path}, {t_demos:.0f} s); "
-        f"{args.policy} policy, {sum(p.numel() for p in policy.parameters())} parameters",
+        f"{args.policy} policy, {sum(p.numel() for p in policy.parameters())} parameters, "
+        f"learner on {args.device}, {args.sim_backend.upper()}-sim evaluation",
         flush=True,
     )
     losses: list[float] = []
     record: dict[str, Any] = {}
     t_train = time.perf_counter()
     for it in range(1, args.iterations + 1):
-        obs, chunk = data.sample(args.batch_size, gen)
+        obs, chunk = (x.to(device) for x in data.sample(args.batch_size, gen))
         loss = policy.loss(obs, chunk, gen)
         optim.zero_grad(set_to_none=True)
         loss.backward()
@@ -409,14 +419,16 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--ema", type=float, default=0.999)
     p.add_argument("--eval-every", type=int, default=2500)
     p.add_argument("--eval-episodes", type=int, default=100)
-    p.add_argument("--eval-envs", type=int, default=2, help="batched CPU-sim envs for evaluation")
+    p.add_argument("--eval-envs", type=int, default=2, help="batched envs for evaluation")
     p.add_argument("--eval-seed", type=int, default=10_000)
     p.add_argument("--max-episode-steps", type=int, default=100)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--out", default="outputs/bc")
     p.add_argument("--smoke", action="store_true", help="20 demos, 300 iterations, 4 evaluation episodes")
+    sim_device.add_arguments(p, cpu_default=True)
     args = p.parse_args(argv)
+    sim_device.check_arguments(p, args, cpu_default=True, smoke=args.smoke)
     if args.smoke:
         args.num_demos, args.iterations, args.eval_every, args.eval_episodes = 20, 300, 300, 4
     if not 1 <= args.act_horizon <= args.pred_horizon:

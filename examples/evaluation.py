@@ -19,6 +19,7 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, RandomPolicy, set_exploration_type
 
 from maniskill_torchrl.pipeline import make_env as make_pipeline
+from sim_device import resolve
 
 
 def time_limit(env_id: str, max_episode_steps: int | None = None) -> int:
@@ -34,12 +35,29 @@ def time_limit(env_id: str, max_episode_steps: int | None = None) -> int:
     return limit
 
 
-def make_eval_env(env_id: str, num_envs: int, device: torch.device, repeat: int = 1, **env_kwargs: Any) -> EnvBase:
+def make_eval_env(
+    env_id: str,
+    num_envs: int,
+    device: torch.device | str,
+    repeat: int = 1,
+    sim_backend: str = "auto",
+    **env_kwargs: Any,
+) -> EnvBase:
     """The evaluation env, as ManiSkill's PPO baseline evaluates: episodes run to the time limit
-    (``IgnoreTerminations``), ``EpisodeMetrics`` reports success_once / success_at_end / return."""
-    backend = "gpu" if device.type == "cuda" else "physx_cpu"
+    (``IgnoreTerminations``), ``EpisodeMetrics`` reports success_once / success_at_end / return.
+
+    ``device`` is the learner's: the env's outputs arrive there. ``sim_backend`` is the examples'
+    ``--sim-backend`` (``sim_device.resolve``): ``"auto"``, the GPU sim for a cuda device and the
+    CPU sim otherwise; ``"cpu"``, the CPU sim whatever the device; ``"gpu"``, the GPU sim."""
+    sim_backend, device = resolve(sim_backend, device)
     return make_pipeline(
-        env_id, num_envs=num_envs, repeat=repeat, ignore_terminations=True, sim_backend=backend, **env_kwargs
+        env_id,
+        num_envs=num_envs,
+        repeat=repeat,
+        ignore_terminations=True,
+        sim_backend=sim_backend,
+        device=device,
+        **env_kwargs,
     )
 
 

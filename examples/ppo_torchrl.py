@@ -1,18 +1,22 @@
 """PPO on a ManiSkill task with TorchRL: ``ManiSkillEnv`` + this library's transforms.
 
-Two configurations:
+Two simulators (``--sim-backend``; the learner's device is ``--device``):
 
-- **GPU** (``torch.cuda.is_available()``, the default there): one ManiSkill
-  GPU-sim env with ``--num-envs`` parallel envs (512) is one batched TorchRL
-  env (``ManiSkillEnv(env_id, num_envs=512, sim_backend="gpu")``, batch
+- **GPU sim** (``--sim-backend gpu``, or ``auto`` with ``--device cuda``: the
+  default where ``torch.cuda.is_available()``): one ManiSkill GPU-sim env with
+  ``--num-envs`` parallel envs (512) is one batched TorchRL env
+  (``ManiSkillEnv(env_id, num_envs=512, sim_backend="gpu")``, batch
   ``[512]``); partial resets go through TorchRL's ``"_reset"`` mask.
-- **CPU**: the same call, ``ManiSkillEnv(env_id, num_envs=4)``, on the CPU
-  sim: one batched TorchRL env over 4 processes (one CPU-sim env each, the
-  first in this one), the fastest CPU path (``benchmarks/RESULTS.md``). ``--vec parallel``
-  / ``--vec serial`` stack single unbatched ``ManiSkillEnv(batch_size=[])`` envs in a
-  ``ParallelEnv`` / ``SerialEnv`` instead.
+- **CPU sim** (``--sim-backend cpu``, or ``auto`` with ``--device cpu``): the same call,
+  ``ManiSkillEnv(env_id, num_envs=4)``, on the CPU sim: one batched TorchRL env over 4
+  processes (one CPU-sim env each, the first in this one), the fastest CPU path
+  (``benchmarks/RESULTS.md``). ``--vec parallel`` / ``--vec serial`` stack single unbatched
+  ``ManiSkillEnv(batch_size=[])`` envs in a ``ParallelEnv`` / ``SerialEnv`` instead.
+  With ``--device cuda`` the CPU sim feeds a GPU learner: the env is made with
+  ``device="cuda:0"``, so batches arrive on the GPU.
   ``--smoke`` is a few hundred frames through 2 batched CPU envs that checks
-  the whole loop end to end in well under a minute.
+  the whole loop end to end in well under a minute (``--smoke --device cuda``: the
+  same on the CPU sim, the learner on the GPU).
 
 Either way the env then gets ``ActionRepeat`` (``--repeat``, optional) and
 ``EpisodeMetrics`` (return, length, success once / at end per episode), and
@@ -33,6 +37,7 @@ Usage::
     python examples/ppo_torchrl.py                 # GPU: PushCube-v1, 512 envs
     python examples/ppo_torchrl.py --smoke         # CPU: end-to-end check
     python examples/ppo_torchrl.py --device cpu --num-envs 4 --total-frames 20000
+    python examples/ppo_torchrl.py --sim-backend cpu --device cuda   # CPU sim, GPU learner
 """
 
 from __future__ import annotations
@@ -60,6 +65,7 @@ from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
+import sim_device
 from evaluation import (  # noqa: F401 (names kept here)
     episode_stats,
     evaluate_and_log,
@@ -95,17 +101,19 @@ def _env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     return env_kwargs
 
 
-def make_env(args: argparse.Namespace, device: torch.device) -> EnvBase:
-    """The training env: batch ``[num_envs]`` on ``device``."""
+def make_env(args: argparse.Namespace) -> EnvBase:
+    """The training env: batch ``[num_envs]``, its outputs on the learner's device (``--device``)."""
     env_kwargs = _env_kwargs(args)
     if args.vec == "batched":
         # A batched TorchRL env on either sim (one GPU simulator, or one CPU worker per env): no CPUUnbatch.
-        backend = "gpu" if device.type == "cuda" else "physx_cpu"
-        return make_pipeline(args.env_id, num_envs=args.num_envs, repeat=args.repeat, sim_backend=backend, **env_kwargs)
+        return make_pipeline(
+            args.env_id, num_envs=args.num_envs, repeat=args.repeat, **sim_device.env_kwargs(args), **env_kwargs
+        )
+    # The CPU sim's workers step on the CPU; the batched env hands their outputs over on --device.
     make = functools.partial(make_cpu_env, args.env_id, args.repeat, env_kwargs)
     if args.vec == "serial":
-        return SerialEnv(args.num_envs, make)
-    return ParallelEnv(args.num_envs, make, mp_start_method="spawn")
+        return SerialEnv(args.num_envs, make, device=args.device)
+    return ParallelEnv(args.num_envs, make, mp_start_method="spawn", device=args.device)
 
 
 def _time_limit(args: argparse.Namespace) -> int:
@@ -227,17 +235,14 @@ def ppo_update(
 def train(args: argparse.Namespace) -> dict[str, Any]:
     """Runs PPO; returns the last iteration's log record."""
     start = time.perf_counter()  # wall time from here: env start-up, training and evaluation
-    device = torch.device(args.device)
-    if device.type == "cuda" and device.index is None:
-        # ManiSkill reports "cuda:0": an indexless "cuda" would look like another device to TorchRL.
-        device = torch.device("cuda", torch.cuda.current_device())
+    device = torch.device(args.device)  # cuda with its index (sim_device.check_arguments)
     torch.manual_seed(args.seed)
     if device.type == "cpu":
         torch.set_num_threads(args.threads)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
 
-    env = make_env(args, device)
+    env = make_env(args)
     env.set_seed(args.seed)
     policy, value = make_models(env, args.hidden, device)
 
@@ -260,8 +265,8 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     iterations = total_frames // frames_per_batch
     updates_per_epoch = max(1, frames_per_batch // args.minibatch_size)
     print(
-        f"PPO on {args.env_id} ({'GPU sim' if device.type == 'cuda' else 'CPU sim'}, {args.num_envs} envs, "
-        f"ActionRepeat({args.repeat})): {iterations} iterations x {frames_per_batch} frames, "
+        f"PPO on {args.env_id} ({args.sim_backend.upper()} sim, {args.num_envs} envs, "
+        f"ActionRepeat({args.repeat}), learner on {args.device}): {iterations} iterations x {frames_per_batch} frames, "
         f"{args.epochs} epochs x {updates_per_epoch} minibatches of {args.minibatch_size}",
         flush=True,
     )
@@ -270,7 +275,9 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     log_path.write_text("")
     eval_env = None
     if args.eval_every > 0:
-        eval_env = make_eval_env(args.env_id, args.eval_envs, device, args.repeat, **_env_kwargs(args))
+        eval_env = make_eval_env(
+            args.env_id, args.eval_envs, device, args.repeat, sim_backend=args.sim_backend, **_env_kwargs(args)
+        )
         eval_steps = -(-_time_limit(args) // args.repeat)  # ceil: a last partial repeat still counts
 
         def log_eval(frames: int, train_s: float, which: str, acting: Any) -> dict[str, float]:
@@ -386,9 +393,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
     )
     p.add_argument("--env-id", default="PushCube-v1")
-    p.add_argument("--smoke", action="store_true", help="tiny CPU run: 2 batched CPU envs, a few hundred frames")
-    p.add_argument("--device", default=None, help="cuda (GPU sim) or cpu (CPU sim); default: cuda if available")
-    p.add_argument("--num-envs", type=int, default=None, help="default: 512 on GPU, 2 on CPU and with --smoke")
+    p.add_argument("--smoke", action="store_true", help="tiny CPU-sim run: 2 batched CPU envs, a few hundred frames")
+    sim_device.add_arguments(p)
+    p.add_argument("--num-envs", type=int, default=None, help="default: 512 on the GPU sim, 2 on the CPU sim")
     p.add_argument(
         "--vec",
         choices=("batched", "parallel", "serial"),
@@ -452,13 +459,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--out", default="outputs/ppo")
     args = p.parse_args(argv)
 
-    if args.device is None:
-        args.device = "cpu" if args.smoke or not torch.cuda.is_available() else "cuda"
-    if args.device.startswith("cuda") and not torch.cuda.is_available():
-        p.error("--device cuda needs a CUDA GPU (torch.cuda.is_available() is False); use --device cpu")
-    if args.smoke and args.device != "cpu":
-        p.error("--smoke is the CPU configuration; drop --device or use --device cpu")
-    gpu = args.device.startswith("cuda")
+    sim_device.check_arguments(p, args, smoke=args.smoke)
+    gpu = args.sim_backend == "gpu"  # the GPU sim's defaults; a GPU learner on the CPU sim takes the CPU sim's
     if gpu and args.vec != "batched":
         p.error(f"--vec {args.vec} is for the CPU sim: the GPU sim is one batched env (--vec batched)")
     # Defaults per configuration: (num_envs, num_steps, total_frames, epochs, minibatch).

@@ -6,10 +6,13 @@ ManiSkill's SAC baseline (``partial_reset=False``, ``bootstrap_at_done="always"`
 ``SACLoss`` bootstraps from ``("next", "observation")`` unless ``("next", "terminated")``, so the
 final observation of each episode (kept by the env at every done) is where the target reads.
 
-Configurations, as ``ppo_torchrl.py``'s:
+Configurations, as ``ppo_torchrl.py``'s (``--sim-backend``, ``--device``: ``sim_device.py``):
 
-- **CPU** (default without CUDA): ``ManiSkillEnv(env_id, num_envs=4)``, 4 CPU-sim processes.
-- **GPU** (``--device cuda``): one GPU-sim env with ``--num-envs`` (default 32) parallel envs.
+- **CPU sim** (default without CUDA): ``ManiSkillEnv(env_id, num_envs=4)``, 4 CPU-sim processes;
+  with ``--sim-backend cpu --device cuda`` they feed a learner on the GPU (the env is made with
+  ``device="cuda:0"``: batches arrive there).
+- **GPU sim** (``--device cuda``, ``--sim-backend auto`` or ``gpu``): one GPU-sim env with
+  ``--num-envs`` (default 32) parallel envs.
 
 The loop is TorchRL's: a ``Collector`` (random actions for the first ``--learning-starts`` frames),
 a ``ReplayBuffer`` over ``LazyTensorStorage``, ``SACLoss`` with two Q-nets (layer norm) and an
@@ -27,6 +30,7 @@ Usage::
 
     python examples/sac_torchrl.py --env-id PushCube-v1 --total-frames 100000
     python examples/sac_torchrl.py --smoke        # a few hundred frames end to end
+    python examples/sac_torchrl.py --sim-backend cpu --device cuda   # CPU sim, GPU learner
 """
 
 from __future__ import annotations
@@ -47,6 +51,7 @@ from torchrl.envs import EnvBase
 from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import SACLoss, SoftUpdate, ValueEstimators
 
+import sim_device
 from evaluation import episode_stats, evaluate_and_log, make_eval_env, time_limit
 from maniskill_torchrl.pipeline import make_env as make_pipeline
 
@@ -133,13 +138,13 @@ def sac_update(loss: SACLoss, optim: dict[str, torch.optim.Optimizer], batch: An
     return out
 
 
-def make_env(args: argparse.Namespace, device: torch.device) -> EnvBase:
-    backend = "gpu" if device.type == "cuda" else "physx_cpu"
+def make_env(args: argparse.Namespace) -> EnvBase:
+    """The training env: batch ``[num_envs]``, its outputs on the learner's device (``--device``)."""
     return make_pipeline(
         args.env_id,
         num_envs=args.num_envs,
         ignore_terminations=True,
-        sim_backend=backend,
+        **sim_device.env_kwargs(args),
         obs_mode="state",
         control_mode=args.control_mode,
         **({"max_episode_steps": args.max_episode_steps} if args.max_episode_steps else {}),
@@ -186,7 +191,7 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
 
-    env = make_env(args, device)
+    env = make_env(args)
     env.set_seed(args.seed)
     obs_dim = env.observation_spec["observation"].shape[-1]
     actor, qnet = make_models(obs_dim, env.action_spec_unbatched.to(device), args.hidden, device)
@@ -207,6 +212,7 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
         args.eval_envs,
         device,
         1,
+        sim_backend=args.sim_backend,
         control_mode=args.control_mode,
         **({"max_episode_steps": args.max_episode_steps} if args.max_episode_steps else {}),
     )
@@ -220,7 +226,7 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     timing = {"sim_s": 0.0, "update_s": 0.0}
     log_eval(0, "random", None, timing)
     print(
-        f"SAC on {args.env_id} ({'GPU' if device.type == 'cuda' else 'CPU'} sim, {args.num_envs} envs): "
+        f"SAC on {args.env_id} ({args.sim_backend.upper()} sim, {args.num_envs} envs, learner on {args.device}): "
         f"{frames_per_batch} frames per batch, {args.utd} updates per frame, batch {args.batch_size}",
         flush=True,
     )
@@ -274,9 +280,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
     )
     p.add_argument("--env-id", default="PushCube-v1")
-    p.add_argument("--smoke", action="store_true", help="a few hundred frames on 2 CPU envs, end to end")
-    p.add_argument("--device", default=None, help="cuda (GPU sim) or cpu (CPU sim); default: cuda if available")
-    p.add_argument("--num-envs", type=int, default=None, help="default: 32 on the GPU, 4 on the CPU")
+    p.add_argument("--smoke", action="store_true", help="a few hundred frames on 2 CPU-sim envs, end to end")
+    sim_device.add_arguments(p)
+    p.add_argument("--num-envs", type=int, default=None, help="default: 32 on the GPU sim, 4 on the CPU sim")
     p.add_argument("--steps-per-batch", type=int, default=8, help="steps per env per collected batch")
     p.add_argument("--total-frames", type=int, default=200_000)
     p.add_argument("--learning-starts", type=int, default=4_000, help="random-action frames before the updates")
@@ -292,17 +298,16 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--threads", type=int, default=1, help="torch threads on the CPU")
     p.add_argument("--eval-every", type=int, default=20_000, help="frames between evaluations")
     p.add_argument("--eval-episodes", type=int, default=50)
-    p.add_argument("--eval-envs", type=int, default=None, help="default: --eval-episodes on the GPU, 2 on the CPU")
+    p.add_argument(
+        "--eval-envs", type=int, default=None, help="default: --eval-episodes on the GPU sim, 2 on the CPU sim"
+    )
     p.add_argument("--eval-seed", type=int, default=10_000)
     p.add_argument("--max-minutes", type=float, default=None, help="stop after this much wall time, then evaluate")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="outputs/sac")
     args = p.parse_args(argv)
-    if args.device is None:
-        args.device = "cuda" if torch.cuda.is_available() and not args.smoke else "cpu"
-    if args.device.startswith("cuda") and not torch.cuda.is_available():
-        p.error("--device cuda needs a CUDA GPU (torch.cuda.is_available() is False); use --device cpu")
-    gpu = args.device.startswith("cuda")
+    sim_device.check_arguments(p, args, smoke=args.smoke)
+    gpu = args.sim_backend == "gpu"  # the GPU sim's defaults; a GPU learner on the CPU sim takes the CPU sim's
     if args.num_envs is None:
         args.num_envs = 2 if args.smoke else (32 if gpu else 4)
     if args.eval_envs is None:

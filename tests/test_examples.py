@@ -11,6 +11,7 @@ one to one and a half minutes; nothing here is skipped.
 from __future__ import annotations
 
 import json
+import re
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -20,6 +21,13 @@ import pytest
 
 from helpers import EXAMPLES, TIMEOUT_S, Started, start
 from maniskill_torchrl import cli
+
+sys.path.insert(0, str(EXAMPLES))
+import bc_torchrl  # noqa: E402
+import evaluation  # noqa: E402
+import ppo_torchrl  # noqa: E402
+import sac_torchrl  # noqa: E402
+import sim_device  # noqa: E402
 
 BIN = Path(sys.executable).parent
 
@@ -41,12 +49,28 @@ COMMANDS: dict[str, Callable[[Path], list[str]]] = {
         "--no-progress",
     ],
     "test_python_dash_m_help": lambda cwd: [sys.executable, "-m", "maniskill_torchrl", "demo", "--help"],
+    # The simulator and the learner's device pinned: on a machine with CUDA too, the CPU sim and a CPU learner.
     "test_ppo_smoke": lambda cwd: [
         sys.executable,
         str(EXAMPLES / "ppo_torchrl.py"),
         "--smoke",
+        "--sim-backend",
+        "cpu",
+        "--device",
+        "cpu",
         "--out",
         str(cwd / "ppo"),
+    ],
+    "test_sac_smoke": lambda cwd: [
+        sys.executable,
+        str(EXAMPLES / "sac_torchrl.py"),
+        "--smoke",
+        "--sim-backend",
+        "cpu",
+        "--device",
+        "cpu",
+        "--out",
+        str(cwd / "sac"),
     ],
     "test_evaluate_gym": lambda cwd: [
         sys.executable,
@@ -233,7 +257,7 @@ def test_scripted_policy_is_batched_and_bounded() -> None:
 def test_ppo_smoke(runs) -> None:
     proc, cwd = runs("test_ppo_smoke")
     out = cwd / "ppo"
-    assert "PPO on PushCube-v1 (CPU sim, 2 envs" in proc.stdout
+    assert "PPO on PushCube-v1 (CPU sim, 2 envs, ActionRepeat(1), learner on cpu)" in proc.stdout
     iters = [line for line in proc.stdout.splitlines() if line.startswith("iter")]
     assert len(iters) == 3, proc.stdout
 
@@ -249,6 +273,22 @@ def test_ppo_smoke(runs) -> None:
     assert {"policy", "value", "args", "frames"} <= set(ckpt)
     assert ckpt["frames"] == 300 and ckpt["args"]["env_id"] == "PushCube-v1"
     assert any(k.endswith("weight") for k in ckpt["policy"]) and any(k.endswith("weight") for k in ckpt["value"])
+
+
+def test_sac_smoke(runs) -> None:
+    """``sac_torchrl.py --smoke --sim-backend cpu --device cpu``: random frames, updates, two evaluations
+    (the random policy's and the trained one's) and both checkpoints."""
+    proc, cwd = runs("test_sac_smoke")
+    out = cwd / "sac"
+    assert "SAC on PushCube-v1 (CPU sim, 2 envs, learner on cpu)" in proc.stdout, proc.stdout
+    records = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    assert [(r["eval"], r["frames"]) for r in records] == [("random", 0), ("policy", 400)]
+    assert all(r["episodes"] == 2 and {"success_once", "return"} <= set(r) for r in records)
+    import torch
+
+    ckpt = torch.load(out / "sac_checkpoint.pt", weights_only=False)
+    assert ckpt["frames"] == 400 and ckpt["args"]["sim_backend"] == "cpu" and ckpt["args"]["device"] == "cpu"
+    assert (out / "sac_checkpoint_best.pt").exists()
 
 
 def test_evaluate_gym(runs) -> None:
@@ -269,3 +309,154 @@ def test_migrate_from_maniskill(runs) -> None:
     proc, _ = runs("test_migrate_from_maniskill")
     assert "identical: True" in proc.stdout, proc.stdout
     assert proc.stdout.count("reset") >= 2 * 3  # both columns: the first reset and two seeded resets
+
+
+# ------------------------------------------------------------ --sim-backend / --device
+EXAMPLE_MODULES = {"ppo": ppo_torchrl, "sac": sac_torchrl, "bc": bc_torchrl}
+
+
+@pytest.mark.parametrize(
+    ("sim_backend", "device", "smoke", "expected"),
+    [
+        ("auto", "cuda", False, ("gpu", "cuda")),  # what --device cuda meant before --sim-backend
+        ("auto", "cuda:1", False, ("gpu", "cuda:1")),
+        ("auto", "cpu", False, ("cpu", "cpu")),
+        ("auto", "cuda", True, ("cpu", "cuda")),  # --smoke is a CPU-sim configuration
+        ("cpu", "cuda", False, ("cpu", "cuda")),  # the CPU sim feeding a GPU learner
+        ("cpu", "cpu", False, ("cpu", "cpu")),
+        ("cpu", "cpu", True, ("cpu", "cpu")),
+        ("gpu", "cuda", False, ("gpu", "cuda")),
+        ("gpu", "cpu", False, "--sim-backend gpu needs --device cuda"),
+        ("gpu", "cuda", True, "--smoke is a CPU-sim configuration"),
+        ("physx_cuda", "cuda", False, "--sim-backend must be one of auto, cpu, gpu"),
+        ("cpu", "mps", False, "--device must be cpu or cuda"),
+    ],
+)
+def test_sim_backend_resolution(sim_backend, device, smoke, expected) -> None:
+    """The one rule (``examples/sim_device.py``), pure: no CUDA is read, so every pair is checked here."""
+    import torch
+
+    if isinstance(expected, str):
+        with pytest.raises(ValueError, match=re.escape(expected)):
+            sim_device.resolve(sim_backend, device, smoke)
+    else:
+        backend, dev = sim_device.resolve(sim_backend, device, smoke)
+        assert (backend, dev) == (expected[0], torch.device(expected[1]))
+
+
+def _fake_cuda(monkeypatch: pytest.MonkeyPatch, available: bool) -> None:
+    """The examples' flag checks read ``torch.cuda.is_available()`` and ``current_device()`` only:
+    patched, the parsing of a machine with (or without) CUDA runs on any machine."""
+    import torch
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: available)
+    monkeypatch.setattr(torch.cuda, "current_device", lambda: 0)
+
+
+# (flags, CUDA there?) -> resolved (sim_backend, device) per example, or the refusal's message.
+DEVICE_FLAGS = [
+    ([], True, {"ppo": ("gpu", "cuda:0"), "sac": ("gpu", "cuda:0"), "bc": ("cpu", "cpu")}),
+    ([], False, ("cpu", "cpu")),
+    (["--device", "cuda"], True, ("gpu", "cuda:0")),
+    (["--device", "cuda:0", "--sim-backend", "gpu"], True, ("gpu", "cuda:0")),
+    (["--sim-backend", "cpu"], True, {"ppo": ("cpu", "cuda:0"), "sac": ("cpu", "cuda:0"), "bc": ("cpu", "cpu")}),
+    (["--sim-backend", "cpu", "--device", "cuda"], True, ("cpu", "cuda:0")),
+    (["--sim-backend", "cpu", "--device", "cpu"], True, ("cpu", "cpu")),
+    (["--device", "cpu"], True, ("cpu", "cpu")),
+    (["--smoke"], True, ("cpu", "cpu")),
+    (["--smoke", "--device", "cuda"], True, ("cpu", "cuda:0")),
+    (["--smoke", "--sim-backend", "cpu", "--device", "cuda"], True, ("cpu", "cuda:0")),
+    (["--sim-backend", "gpu", "--device", "cpu"], True, "--sim-backend gpu needs --device cuda"),
+    (["--sim-backend", "gpu"], False, "--sim-backend gpu needs --device cuda"),
+    (["--device", "cuda"], False, "needs a CUDA GPU"),
+    (["--sim-backend", "cpu", "--device", "cuda"], False, "needs a CUDA GPU"),
+    (["--smoke", "--sim-backend", "gpu", "--device", "cuda"], True, "--smoke is a CPU-sim configuration"),
+    (["--sim-backend", "physx_cuda"], True, "argument --sim-backend: invalid choice"),
+]
+
+
+@pytest.mark.parametrize("example", ["ppo", "sac", "bc"])
+@pytest.mark.parametrize(("flags", "cuda", "expected"), DEVICE_FLAGS)
+def test_device_flags(example, flags, cuda, expected, monkeypatch, capsys) -> None:
+    """``--sim-backend`` x ``--device`` in PPO, SAC and BC, on a machine with CUDA and on one without
+    (``torch.cuda`` patched either way: the result never depends on this machine)."""
+    _fake_cuda(monkeypatch, cuda)
+    module = EXAMPLE_MODULES[example]
+    if isinstance(expected, dict):
+        expected = expected[example]
+    if isinstance(expected, str):
+        with pytest.raises(SystemExit) as exc:
+            module.parse_args(flags)
+        assert exc.value.code == 2
+        assert expected in capsys.readouterr().err
+        return
+    args = module.parse_args(flags)
+    assert (args.sim_backend, args.device) == expected
+    if example == "ppo":  # the defaults follow the simulator, not the learner's device
+        assert args.num_envs == (512 if args.sim_backend == "gpu" else 2)
+    if example == "sac":
+        assert args.num_envs == (2 if args.smoke else 32 if args.sim_backend == "gpu" else 4)
+
+
+class _Recorder:
+    """Stands in for ``make_pipeline`` / ``ParallelEnv`` / ``SerialEnv``: records the call, builds nothing."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[tuple, dict]] = []
+
+    def __call__(self, *args, **kwargs):
+        self.calls.append((args, kwargs))
+        return self
+
+
+@pytest.mark.parametrize("example", ["ppo", "sac"])
+@pytest.mark.parametrize(
+    ("flags", "expected"),
+    [
+        (["--sim-backend", "cpu", "--device", "cuda"], ("cpu", "cuda:0")),
+        (["--device", "cuda"], ("gpu", "cuda:0")),
+        (["--device", "cpu"], ("cpu", "cpu")),
+    ],
+)
+def test_training_env_is_made_on_the_learners_device(example, flags, expected, monkeypatch) -> None:
+    """The training env gets the resolved ``sim_backend`` and ``device=<--device>``: with the CPU sim and a
+    GPU learner, batches arrive on the GPU (the env moves them, not the collector)."""
+    import torch
+
+    _fake_cuda(monkeypatch, True)
+    module = EXAMPLE_MODULES[example]
+    record = _Recorder()
+    monkeypatch.setattr(module, "make_pipeline", record)
+    module.make_env(module.parse_args(flags))
+    ((_, kwargs),) = record.calls
+    assert (kwargs["sim_backend"], kwargs["device"]) == (expected[0], torch.device(expected[1]))
+
+
+@pytest.mark.parametrize("vec", ["parallel", "serial"])
+def test_ppo_cpu_workers_hand_over_on_the_learners_device(vec, monkeypatch) -> None:
+    """``--vec parallel / serial`` with a GPU learner: the workers stay on the CPU sim, the batched env
+    is on the learner's device."""
+    _fake_cuda(monkeypatch, True)
+    record = _Recorder()
+    monkeypatch.setattr(ppo_torchrl, "ParallelEnv" if vec == "parallel" else "SerialEnv", record)
+    ppo_torchrl.make_env(ppo_torchrl.parse_args(["--sim-backend", "cpu", "--device", "cuda", "--vec", vec]))
+    ((args, kwargs),) = record.calls
+    assert kwargs["device"] == "cuda:0"
+    worker = args[1]  # functools.partial(make_cpu_env, ...): the CPU sim, on the CPU
+    assert worker.func is ppo_torchrl.make_cpu_env
+
+
+@pytest.mark.parametrize(
+    ("sim_backend", "device", "expected"),
+    [("auto", "cpu", ("cpu", "cpu")), ("auto", "cuda:0", ("gpu", "cuda:0")), ("cpu", "cuda:0", ("cpu", "cuda:0"))],
+)
+def test_eval_env_follows_the_same_rule(sim_backend, device, expected, monkeypatch) -> None:
+    """``evaluation.make_eval_env`` (PPO's, SAC's, BC's and ``evaluate_gym.py``'s) resolves as the flags do."""
+    import torch
+
+    record = _Recorder()
+    monkeypatch.setattr(evaluation, "make_pipeline", record)
+    evaluation.make_eval_env("PushCube-v1", 2, torch.device(device), 1, sim_backend=sim_backend)
+    ((_, kwargs),) = record.calls
+    assert (kwargs["sim_backend"], kwargs["device"]) == (expected[0], torch.device(expected[1]))
+    assert kwargs["ignore_terminations"] is True

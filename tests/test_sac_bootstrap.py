@@ -12,7 +12,10 @@ and summing rewards until a done, and keeps the observation at the done.
 - ``never`` (terminations kept): a termination cuts the bootstrap, a truncation does not.
 
 ``V`` is a fixed function of the observation (its sum), so a target computed from the reset
-observation instead of the final one, or a truncation read as a termination, changes it."""
+observation instead of the final one, or a truncation read as a termination, changes it.
+
+Both sides pin the CPU sim: with CUDA there, ``sim_backend="auto"`` would make the library's
+two-env batch a GPU-sim env, which a CPU loop does not reproduce bit for bit."""
 
 from __future__ import annotations
 
@@ -48,7 +51,9 @@ def raw_loop(actions: torch.Tensor, ignore_terminations: bool) -> list[dict[str,
     ``numpy.random.RandomState(SEED)`` and sub-env ``i`` restarts with ``d + i``."""
     import mani_skill.envs  # noqa: F401  (registers the tasks)
 
-    envs = [gym.make(TASK, num_envs=1, obs_mode="state", max_episode_steps=LIMIT) for _ in actions]
+    envs = [
+        gym.make(TASK, num_envs=1, obs_mode="state", max_episode_steps=LIMIT, sim_backend="physx_cpu") for _ in actions
+    ]
     rng = np.random.RandomState(SEED)
     out: list[dict[str, list]] = [
         {"reward": [], "terminated": [], "truncated": [], "next_obs": [], "obs": []} for _ in envs
@@ -103,6 +108,7 @@ def test_sac_targets_match_a_raw_maniskill_loop(bootstrap):
         repeat=REPEAT,
         ignore_terminations=always,
         metrics=False,
+        sim_backend="cpu",  # not "auto": the GPU sim where CUDA is
         obs_mode="state",
         max_episode_steps=LIMIT,
     )
