@@ -79,7 +79,10 @@ class EpisodeStats:
     - ``"numpy"``: bit for bit ``numpy.sum`` of the episode's rewards, as ManiSkill's
       ``CPUGymWrapper(record_metrics=True)`` reports it. It keeps each env's rewards by position
       (:class:`~maniskill_torchrl.numpy_sum.NumpyOrderSums`) and costs one numpy reduction per env
-      per step on the host. Default on the CPU.
+      per step on the host. Default on the CPU. An env whose ``previous`` state is not the
+      continuation of the rewards kept (a step from an earlier episode passed back) goes on
+      from ``previous["return"]`` with a running sum until its next reset: bit-equality with
+      ``CPUGymWrapper`` holds on linear rollouts, and the return always continues ``previous``.
     - ``"running"``: ``return + reward`` in float32, as ``ManiSkillVectorEnv(record_metrics=True)``
       keeps it on the GPU sim: a few tensor ops per step whatever the batch and the episode
       lengths, and no host sync. Default on other devices.
@@ -161,7 +164,7 @@ class EpisodeStats:
         n = previous.get("episode_len")
         reward = reward.reshape(b)
         if self._numpy is not None:
-            total = self._numpy.add(reward, n)
+            total = self._numpy.add(reward, n, previous.get("return"))
         else:
             # ManiSkillVectorEnv's ``returns += rew`` into float32 (rew promoted first, as torch does).
             total = torch.add(previous.get("return"), reward).to(torch.float32)

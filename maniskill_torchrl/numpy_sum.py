@@ -25,6 +25,18 @@ class NumpyOrderSums:
     indexed by position, not appended to, so a rollout that branches again from an earlier step
     of the same episode (``env.rollout(tensordict=root)`` twice) overwrites the abandoned branch.
 
+    The caller's state decides, not the history: :meth:`add` is given the return the caller
+    holds for the step before (``previous``). An env continues numpy's sum only where that
+    return is the one :meth:`add` gave at that position of the history it still holds (the
+    last branch written, not overwritten since). Otherwise (a step kept from an earlier
+    episode, another env's state, a state made by hand), the history does not hold that
+    episode's rewards: the env goes on with a running sum, ``previous + reward``, until its
+    next reset. So ``numpy.sum``'s bits hold on linear rollouts and on branches from a root of
+    the last episode run (what ``CPUGymWrapper`` sees); elsewhere the return is a float32
+    running sum from the caller's state, never another episode's rewards. (A step of another
+    episode whose return has the very same bits at the same length is taken for the one held:
+    the sum is then over rewards with that same float32 prefix sum, equal up to rounding.)
+
     One numpy reduction per env per step, on the host: the CPU sim's summation (a handful of
     envs). The GPU sim's anchor, ``ManiSkillVectorEnv(record_metrics=True)``, keeps a running
     float32 sum instead (:class:`~maniskill_torchrl.episode_stats.EpisodeStats`,
@@ -40,8 +52,9 @@ class NumpyOrderSums:
         >>> import numpy as np, torch
         >>> sums = NumpyOrderSums([1])
         >>> rewards = torch.rand(300).float()
+        >>> total = None
         >>> for n, r in enumerate(rewards):
-        ...     total = sums.add(r.reshape(1), torch.tensor([n]))
+        ...     total = sums.add(r.reshape(1), torch.tensor([n]), total)
         >>> total.item() == float(np.sum(rewards.numpy()))
         True
     """
@@ -49,30 +62,65 @@ class NumpyOrderSums:
     def __init__(self, batch_size: Sequence[int] | torch.Size, *, native: bool = False) -> None:
         self.batch_size = torch.Size(batch_size)
         self.native = native
-        self._hist = np.zeros((self.batch_size.numel(), 256), np.float32)
+        n = self.batch_size.numel()
+        self._rows = np.arange(n)
+        # Per env and position in the episode: the reward, the return add() gave, and whether
+        # that return was numpy's sum of the episode's rewards (False: a running sum).
+        self._hist = np.zeros((n, 256), np.float32)
+        self._sums = np.zeros((n, 256), np.float32)
+        self._exact = np.zeros((n, 256), bool)
+        # The last position written per env: the positions after it are an abandoned branch.
+        self._top = np.full(n, -1, np.int64)
 
-    def add(self, reward: torch.Tensor, position: torch.Tensor) -> torch.Tensor:
+    def _fit(self, last: int, dtype: np.dtype) -> None:
+        """Room for position ``last`` in rewards of ``dtype``."""
+        hist = self._hist
+        if last < hist.shape[1] and hist.dtype == dtype:
+            return
+        width = max(hist.shape[1], 2 * (last + 1))
+        # numpy.sum's dtype: float32 for float32 rewards, int64 for bool ones, float64 for float64.
+        sum_dtype = np.add.reduce(np.zeros((1, 1), dtype), axis=1).dtype
+        for name, kind in (("_hist", dtype), ("_sums", sum_dtype), ("_exact", bool)):
+            old = getattr(self, name)
+            grown = np.zeros((old.shape[0], width), kind)
+            grown[:, : old.shape[1]] = old
+            setattr(self, name, grown)
+
+    def add(self, reward: torch.Tensor, position: torch.Tensor, previous: torch.Tensor | None = None) -> torch.Tensor:
         """Each env's return after ``reward`` at ``position`` (0 for an episode's first step).
 
-        ``reward`` and ``position`` are shaped as the batch; the result is float32, shaped as the
-        batch, on ``reward``'s device.
+        ``reward``, ``position`` and ``previous`` are shaped as the batch. ``previous`` is the
+        return the caller holds for position - 1 (not read at position 0): where it is not the
+        one this history gave there, the env's return is ``previous + reward`` (see the class
+        docstring). None: every env continues the history (a caller that keeps no state). The
+        result is float32 (or numpy.sum's dtype with ``native``), shaped as the batch, on
+        ``reward``'s device.
         """
         on_host = reward.device.type == "cpu"
         rewards = reward.detach().reshape(-1)
         if not self.native and (not on_host or rewards.dtype != torch.float32):
             rewards = rewards.to("cpu", torch.float32)
         rewards = rewards.cpu().numpy()
-        positions = position.reshape(-1).tolist()
-        hist = self._hist
-        last = max(positions, default=0)
-        if last >= hist.shape[1] or hist.dtype != rewards.dtype:
-            grown = np.zeros((hist.shape[0], max(hist.shape[1], 2 * (last + 1))), rewards.dtype)
-            grown[:, : hist.shape[1]] = hist
-            hist = self._hist = grown
-        # numpy.sum's dtype: float32 for float32 rewards, int64 for bool ones, float64 for float64.
-        totals = np.empty(len(positions), np.add.reduce(hist[:1, :1], axis=1).dtype)
-        for i, k in enumerate(positions):
-            hist[i, k] = rewards[i]
-            totals[i] = np.add.reduce(hist[i, : k + 1])
+        positions = position.detach().reshape(-1).cpu().numpy().astype(np.int64)  # a copy: kept as _top
+        self._fit(int(positions.max(initial=0)), rewards.dtype)
+        rows, hist, sums = self._rows, self._hist, self._sums
+        before = positions - 1
+        if previous is None:
+            follows = np.ones(len(rows), bool)
+        else:
+            prev = previous.detach().reshape(-1).cpu().numpy()
+            at = np.maximum(before, 0)
+            held = (before <= self._top) & self._exact[rows, at] & (sums[rows, at] == prev)
+            follows = (before < 0) | held
+        hist[rows, positions] = rewards
+        totals = np.empty(len(rows), sums.dtype)
+        for i in np.flatnonzero(follows).tolist():
+            totals[i] = np.add.reduce(hist[i, : positions[i] + 1])
+        if not follows.all():
+            lost = ~follows
+            totals[lost] = (prev[lost] + rewards[lost]).astype(sums.dtype)
+        sums[rows, positions] = totals
+        self._exact[rows, positions] = follows
+        self._top = positions
         out = torch.from_numpy(totals).view(self.batch_size)
         return out if on_host else out.to(reward.device)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDictBase
 from torchrl.data import Categorical, Composite, TensorSpec, Unbounded
-from torchrl.envs import Transform
+from torchrl.envs import EnvBase, Transform, TransformedEnv
 
 from maniskill_torchrl.episode_stats import SUMMATIONS, EpisodeField, EpisodeStats, episode_fields
 
@@ -17,7 +17,7 @@ class EpisodeMetrics(Transform):
 
     At every step, for every env of the batch (TorchRL's counterpart of
     ``CPUGymWrapper(env, record_metrics=True)``, and the same numbers, bit
-    for bit, on one CPU env):
+    for bit, on one CPU env's linear rollouts):
 
     - ``("episode", "return")`` float32: the sum of the episode's rewards,
       summed as ``numpy.sum`` does;
@@ -45,9 +45,16 @@ class EpisodeMetrics(Transform):
 
     ``return`` is summed one of two ways (``summation``), after the two anchors:
 
-    - ``"numpy"`` (default on the CPU): ``numpy.sum`` of the episode's rewards,
-      bit for bit ``CPUGymWrapper``'s; one host-side numpy reduction per env per step;
-    - ``"running"`` (default elsewhere, e.g. the GPU sim): a running float32 sum,
+    - ``"numpy"`` (default on ManiSkill's CPU sim, whatever ``device`` its outputs
+      are on): ``numpy.sum`` of the episode's rewards, bit for bit ``CPUGymWrapper``'s;
+      one host-side numpy reduction per env per step. numpy's pairwise order needs the
+      episode's rewards, which the transform keeps itself (the tensordict holds only the
+      return): an env whose input state is not the continuation of that history (a step
+      kept from an earlier episode, stepped again after others ran) goes on from the
+      tensordict's return with a running float32 sum until its next reset. So bit-equality
+      with ``CPUGymWrapper`` holds on linear rollouts (and on branches from a root of the
+      last episode run); the return always continues from the tensordict's state.
+    - ``"running"`` (default on the GPU sim): a running float32 sum,
       bit for bit ``ManiSkillVectorEnv(record_metrics=True)``'s; a few tensor ops
       per step whatever the batch and the episode lengths, and no host sync.
 
@@ -57,7 +64,10 @@ class EpisodeMetrics(Transform):
 
     Args:
         summation (str, optional): ``"numpy"`` or ``"running"``; None (default) picks
-            by the parent's device, as above.
+            by the sim, as above: the base env under the transformed envs says which
+            (a :class:`~maniskill_torchrl.ManiSkillWrapper`'s ``gpu_sim_enabled``); where it cannot (a
+            ``ParallelEnv`` of single envs, a non-ManiSkill env), by the parent's device:
+            ``"numpy"`` on the CPU, ``"running"`` elsewhere.
 
     Examples:
         >>> from torchrl.envs import TransformedEnv, Compose
@@ -101,8 +111,9 @@ class EpisodeMetrics(Transform):
                 + ". For several agents, sum their rewards into one entry first."
             )
         has_success, has_fail = self._flags()
+        summation = self.summation if self.summation is not None else _default_summation(parent)
         self._stats = EpisodeStats(
-            parent.batch_size, parent.device, has_success=has_success, has_fail=has_fail, summation=self.summation
+            parent.batch_size, parent.device, has_success=has_success, has_fail=has_fail, summation=summation
         )
         self._reward_key = reward_keys[0]
         self._reset_keys = list(parent.reset_keys)
@@ -169,3 +180,22 @@ class EpisodeMetrics(Transform):
     def __repr__(self) -> str:
         arg = "" if self.summation is None else f"summation={self.summation!r}"
         return f"{type(self).__name__}({arg})"
+
+
+def _default_summation(parent: EnvBase) -> str:
+    """By the sim where the env says which it is, else by the device.
+
+    The base env under the transformed envs (a :class:`~maniskill_torchrl.ManiSkillWrapper`, or
+    anything with a ``gpu_sim_enabled`` class attribute) answers: ``"running"`` on ManiSkill's
+    GPU sim, ``"numpy"`` on its CPU sim, whatever device its outputs are moved to. Elsewhere
+    (a ``ParallelEnv`` of single envs, a toy env): ``"numpy"`` on the CPU, ``"running"`` on
+    other devices.
+    """
+    base = parent
+    while isinstance(base, TransformedEnv):
+        base = base.base_env
+    # Asked of the class: batched envs hand unknown attributes on to their sub-envs (a list).
+    if hasattr(type(base), "gpu_sim_enabled"):
+        return "running" if base.gpu_sim_enabled else "numpy"
+    device = parent.device
+    return "numpy" if device is None or torch.device(device).type == "cpu" else "running"
