@@ -124,11 +124,25 @@ def _init_signature(app, what, name, obj, options, signature, return_annotation)
     return None
 
 
+_PUBLIC_MODULES = ["maniskill_torchrl", "maniskill_torchrl.wrappers", "maniskill_torchrl.data"]
+
+
+def _documented_library_classes() -> set[str]:
+    import importlib
+
+    return {n for m in _PUBLIC_MODULES for n in getattr(importlib.import_module(m), "__all__", [])}
+
+
 def _public_bases(app, name, obj, options, bases):
-    # Private bases (the wrapper's layout mixin, TorchRL's _EnvWrapper) say nothing to a reader.
-    # When every base is private, the first public class up the MRO (TorchRL's EnvBase) stands in.
+    # Private bases (TorchRL's _EnvWrapper) and the library's internal mixins (the wrapper's
+    # layout, saved states...: classes no public module exports) say nothing to a reader. When
+    # every base is private, the first public class up the MRO (TorchRL's EnvBase) stands in.
+    documented = _documented_library_classes()
+
     def public(b):
-        return not b.__name__.startswith("_") and "maniskill_layout" not in b.__module__
+        if b.__name__.startswith("_"):
+            return False
+        return not b.__module__.startswith("maniskill_torchrl") or b.__name__ in documented
 
     kept = [b for b in bases if public(b)]
     if bases and not kept:
