@@ -150,11 +150,27 @@ def _public_bases(app, name, obj, options, bases):
     bases[:] = kept
 
 
+def _skip_members_of_other_projects(app, what, name, obj, skip, options):
+    # A class documented with :inherited-members: (ManiSkillWrapper, whose get_state / render come
+    # from the library's own mixins) lists what the library defines, not TorchRL's or torch's.
+    inherited = getattr(options, "inherited_members", None)
+    if inherited is None and hasattr(options, "get"):
+        inherited = options.get("inherited_members")
+    if what != "class" or not inherited:
+        return None
+    fn = getattr(obj, "fget", obj)
+    fn = getattr(fn, "__func__", fn)
+    if not (getattr(fn, "__module__", None) or "").startswith("maniskill_torchrl"):
+        return True
+    return None
+
+
 def setup(app):
     app.config._maniskill_aliases = _aliases()
     app.connect("missing-reference", _missing_reference)
     app.connect("autodoc-process-signature", _init_signature)
     app.connect("autodoc-process-bases", _public_bases)
+    app.connect("autodoc-skip-member", _skip_members_of_other_projects)
 
 
 html_theme = "furo"

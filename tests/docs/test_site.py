@@ -59,3 +59,9 @@ def test_api_page_is_for_users(api_html):
     # the internal module layout lives on the contributor page, not in the API reference
     assert "Module layout" not in api_html
     assert "Module layout" in (HTML / "contributing.html").read_text()
+
+
+@pytest.mark.parametrize("method", ["get_state", "reset_to_state", "render"])
+def test_api_documents_methods_from_the_library_mixins(api_html, method):
+    # ManiSkillWrapper takes these from the library's own mixins (saved states, layout)
+    assert f'id="maniskill_torchrl.ManiSkillWrapper.{method}"' in api_html
