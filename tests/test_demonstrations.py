@@ -50,8 +50,10 @@ def recorded(request, tmp_path_factory):
     steps = []
     for seed, episode in zip(SEEDS, actions):
         td = wrapped.reset(seed=seed)
+        td["env_states"] = wrapped.get_state()  # what RecordEpisode records after the reset
         for a in episode:
             td = wrapped.step(td.set("action", a))
+            td["next", "env_states"] = wrapped.get_state()
             # Leaf by leaf: TensorDict.clone() (tensordict 0.14) adds 0 to float leaves, which
             # turns ManiSkill's -0.0 quaternion components into +0.0.
             steps.append(td.apply(torch.Tensor.clone))
@@ -78,6 +80,8 @@ def test_loads_as_the_env_steps(recorded, tmp_path):
     assert not missing, f"keys the env does not have: {missing}"
     assert_tensordict_equal(data.exclude("collector"), expected.select(*keys))
     assert ("next", "reward") in keys and ("next", "success") in keys
+    # The sim states too: each step's starting state at the root, the one after it in "next".
+    assert {("env_states", "actors", "cube"), ("next", "env_states", "articulations", "panda")} <= set(keys)
     # The observation keys are all there, nested as the env nests them.
     obs_keys = set(ManiSkillEnv(TASK, batch_size=[], obs_mode=obs_mode).observation_spec.keys(True, True))
     assert {k for k in obs_keys if k not in ("is_grasped", "is_obj_placed", "is_robot_static")} <= set(keys)
@@ -139,6 +143,23 @@ def test_bad_files(recorded, tmp_path):
         ManiSkillExperienceReplay(tmp_path / "other.h5", 4, root=tmp_path)
 
 
+def test_a_file_without_observations_is_refused(tmp_path):
+    """RecordEpisode(obs_mode="none") writes an empty obs group: refused as a file without
+    observations, with the way to add them."""
+    env = make_gym_env(TASK, obs_mode="none", max_episode_steps=STEPS)
+    rec = RecordEpisode(env, output_dir=str(tmp_path), trajectory_name="none", save_video=False)
+    try:
+        rec.reset(seed=SEEDS[0])
+        for a in _actions(env.unwrapped.single_action_space)[0]:
+            rec.step(a.unsqueeze(0))
+    finally:
+        rec.close()
+    with h5py.File(tmp_path / "none.h5") as f:
+        assert len(f["traj_0"]["obs"]) == 0  # the case: an obs group, empty
+    with pytest.raises(ValueError, match=r"no observations.*replay_trajectory --traj-path .*none.h5 -o state"):
+        ManiSkillExperienceReplay(tmp_path / "none.h5", 4, root=tmp_path / "cache")
+
+
 # ----------------------------------------------------------------------------- recording
 class _Scripted:
     def __init__(self, actions):
@@ -180,6 +201,8 @@ def test_rollouts_saved_in_maniskill_format(tmp_path, num_envs):
         ours = ManiSkillExperienceReplay(path, 4, root=tmp_path / "cache")[:]
         keys = [k for k in ours.keys(True, True) if k not in (("collector", "traj_ids"), "elapsed_steps")]
         keys = [k for k in keys if k != ("next", "elapsed_steps")]
+        # The saved env_states load back where EnvStates put them.
+        assert {("env_states", "actors", "cube"), ("next", "env_states", "actors", "cube")} <= set(keys)
         assert_tensordict_equal(ours.select(*keys), flat.select(*keys))
 
         # Each episode's first env_states row takes the env back to that episode's start.
@@ -219,3 +242,46 @@ def test_maniskill_replay_trajectory_reads_saved_rollouts(tmp_path):
     torch.testing.assert_close(data["next", "agent", "qpos"], steps["next", "observation"][:, :9], rtol=0, atol=1e-4)
     starts = data["elapsed_steps"] == 0
     assert starts.sum() == 2 and torch.equal(data["agent", "qpos"][starts], steps["observation"][starts, :9])
+
+
+@pytest.mark.parametrize("num_envs", [1, 2])
+def test_saved_time_limit_is_the_envs(tmp_path, num_envs):
+    """save_trajectories writes the env's time limit as RecordEpisode does for the same env, and
+    in env_kwargs too: ManiSkillEnv(rb.env_id, **rb.env_kwargs) ends its episodes there. A
+    RecordEpisode file (limit in env_info only) loads with the limit in env_kwargs as well."""
+    limit = STEPS + 2  # not the task's registered 50
+    raw = make_gym_env(TASK, obs_mode="state", max_episode_steps=limit)
+    rec = RecordEpisode(raw, output_dir=str(tmp_path), trajectory_name="theirs", save_video=False)
+    try:
+        rec.reset(seed=SEEDS[0])
+        rec.step(_actions(raw.unwrapped.single_action_space)[0][0].unsqueeze(0))
+    finally:
+        rec.close()
+    theirs = json.loads((tmp_path / "theirs.json").read_text())["env_info"]["max_episode_steps"]
+    assert theirs == limit
+
+    kwargs = dict(obs_mode="state", max_episode_steps=limit)
+    if num_envs > 1:
+        kwargs["sim_backend"] = "cpu"  # one process per env
+    env = ManiSkillEnv(TASK, num_envs=num_envs, **kwargs)
+    try:
+        env.set_seed(SEEDS[0])
+        save_trajectories(tmp_path / "ours.h5", env.rollout(2), env)
+    finally:
+        env.close()
+    info = json.loads((tmp_path / "ours.json").read_text())["env_info"]
+    assert info["max_episode_steps"] == theirs
+    assert info["env_kwargs"]["max_episode_steps"] == theirs
+
+    loaded = {
+        n: ManiSkillExperienceReplay(tmp_path / f"{n}.h5", 2, root=tmp_path / "cache") for n in ("ours", "theirs")
+    }
+    for name, rb in loaded.items():
+        assert rb.env_kwargs["max_episode_steps"] == theirs, name
+    replay = ManiSkillEnv(loaded["ours"].env_id, **loaded["ours"].env_kwargs)
+    try:
+        replay.set_seed(SEEDS[0])
+        episode = replay.rollout(3 * limit)  # stops at the first done
+    finally:
+        replay.close()
+    assert episode.shape[-1] == theirs and episode["next", "truncated"][..., -1, :].all()

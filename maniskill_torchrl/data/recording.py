@@ -30,6 +30,23 @@ def _episodes(done: torch.Tensor) -> list[tuple[int, int, int]]:
     return out
 
 
+def _max_episode_steps(wrapper: Any) -> int | None:
+    """The time limit of the wrapped ManiSkill env, as ``RecordEpisode`` finds it
+    (``find_max_episode_steps_value``: the ``gym.make`` argument, else the task's registered one)."""
+    from mani_skill.utils.gym_utils import find_max_episode_steps_value
+    from mani_skill.utils.registration import REGISTERED_ENVS
+
+    base = wrapper.base_env
+    kwargs = getattr(base, "maniskill_kwargs", None)
+    if kwargs is None:  # a gym env: its TimeLimitWrapper (or spec) knows
+        return find_max_episode_steps_value(wrapper._env)
+    # The batched CPU env: its sub-envs are made with these kwargs, in their own processes.
+    if kwargs.get("max_episode_steps") is not None:
+        return int(kwargs["max_episode_steps"])
+    registered = REGISTERED_ENVS.get(base.spec.id)
+    return None if registered is None else registered.max_episode_steps
+
+
 def _write(group: Any, name: str, value: Any) -> None:
     if isinstance(value, TensorDictBase):
         sub = group.create_group(name, track_order=True)
@@ -50,9 +67,12 @@ def save_trajectories(path: str | Path, rollout: TensorDictBase, env: Any) -> li
     them: ``obs`` (``T + 1`` rows: the first step's observation, then every ``"next"`` one;
     nested groups for a dict observation), ``actions``, ``terminated``, ``truncated``, ``success`` /
     ``fail`` where the env reports them, ``rewards`` (float32) and, where the rollout carries them
-    (:class:`~maniskill_torchrl.transforms.EnvStates`), ``env_states`` (``T + 1`` rows). The
-    ``.json`` holds ``env_info`` (``env_id``, ``env_kwargs``, ``max_episode_steps``) and each
-    episode's ``episode_id``, ``control_mode``, ``elapsed_steps``, ``success`` / ``fail``.
+    (:class:`~maniskill_torchrl.transforms.EnvStates`), ``env_states`` (``T + 1`` rows: the first
+    step's root state, then every ``"next"`` one). The ``.json`` holds ``env_info`` (``env_id``,
+    ``env_kwargs``, ``max_episode_steps``) and each episode's ``episode_id``, ``control_mode``,
+    ``elapsed_steps``, ``success`` / ``fail``. ``max_episode_steps`` is the env's real time limit
+    (what ``RecordEpisode`` writes), also put in ``env_kwargs`` so that ``ManiSkillEnv(env_id,
+    **env_kwargs)`` replays with the recorded episode length.
 
     Args:
         path: the ``.h5`` file to write (replaced if it exists).
@@ -86,11 +106,16 @@ def save_trajectories(path: str | Path, rollout: TensorDictBase, env: Any) -> li
     # gym.make's arguments: the spec's for a ManiSkill env, the CPUVectorEnv's own for its sub-envs.
     env_kwargs = dict(getattr(base, "maniskill_kwargs", None) or spec.kwargs or {})
     env_kwargs.pop("num_envs", None)
+    max_episode_steps = _max_episode_steps(wrapper)
+    if max_episode_steps is not None:
+        # gym.make takes the limit out of the spec's kwargs: put it back, so that
+        # ManiSkillEnv(env_id, **env_kwargs) ends its episodes where these ended.
+        env_kwargs["max_episode_steps"] = max_episode_steps
     meta = {
         "env_info": {
             "env_id": spec.id,
             "env_kwargs": env_kwargs,
-            "max_episode_steps": getattr(spec, "max_episode_steps", None),
+            "max_episode_steps": max_episode_steps,
         },
         "episodes": [],
     }

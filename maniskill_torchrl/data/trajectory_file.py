@@ -14,7 +14,12 @@ a TensorDict of batch ``[T]`` with the keys of a ``ManiSkillEnv(env_id, batch_si
   in ``"next"``;
 - the infos the file keeps, ``success`` and ``fail``, and ``elapsed_steps`` (int32, ManiSkill's),
   at the root (the previous step's; False / 0 after the reset) and in ``"next"``;
-- ``("collector", "traj_ids")`` int64: the episode id (what TorchRL's ``SliceSampler`` reads).
+- ``("collector", "traj_ids")`` int64: the episode id (what TorchRL's ``SliceSampler`` reads);
+- where the file has them, ``"env_states"`` (ManiSkill's ``get_state_dict()`` layout: ``actors``,
+  ``articulations``) laid out as :class:`~maniskill_torchrl.transforms.EnvStates` lays out a
+  rollout: row ``t`` of the file's ``T + 1`` at the root (the state step ``t`` starts from, the
+  one its observation shows) and row ``t + 1`` in ``"next"`` (the state after the step). One
+  step's ``data[i]["env_states"]`` is what ``env.reset_to_state`` takes to go back to step ``i``.
 
 Other task infos (``is_grasped``...) are not in ManiSkill's files, so they are not here.
 """
@@ -81,8 +86,17 @@ class TrajectoryFile:
 
     @property
     def env_kwargs(self) -> dict:
-        """The ``gym.make`` arguments the episodes were recorded with (``obs_mode``, ``control_mode``...)."""
-        return dict(self.meta["env_info"].get("env_kwargs", {}))
+        """The ``gym.make`` arguments the episodes were recorded with (``obs_mode``, ``control_mode``...).
+
+        ``max_episode_steps`` is added from ``env_info`` where ``env_kwargs`` lacks it:
+        ``RecordEpisode`` records the time limit only there, and ``ManiSkillEnv(env_id,
+        **env_kwargs)`` must end its episodes where the recorded ones ended.
+        """
+        info = self.meta["env_info"]
+        kwargs = dict(info.get("env_kwargs") or {})
+        if kwargs.get("max_episode_steps") is None and info.get("max_episode_steps") is not None:
+            kwargs["max_episode_steps"] = info["max_episode_steps"]
+        return kwargs
 
     @property
     def episodes(self) -> list[dict]:
@@ -99,7 +113,8 @@ class TrajectoryFile:
         missing = [k for k in _REQUIRED if k not in group]
         if missing:
             raise ValueError(f"{self.path}: {key} has no {missing}: not a ManiSkill trajectory.")
-        if "obs" not in group:
+        # RecordEpisode(obs_mode="none") writes an empty ``obs`` group: no observation either.
+        if "obs" not in group or not _has_data(group["obs"]):
             raise ValueError(
                 f"{self.path}: {key} has no observations (ManiSkill distributes its demos without them). "
                 "Add them once with ManiSkill's replay: python -m mani_skill.trajectory.replay_trajectory "
@@ -111,6 +126,15 @@ class TrajectoryFile:
         self.h5.close()
 
 
+def _has_data(node: Any) -> bool:
+    """Whether an h5 node is a dataset or a group holding one at any depth."""
+    import h5py
+
+    if isinstance(node, h5py.Group):
+        return any(_has_data(node[k]) for k in node.keys())
+    return True
+
+
 def _read(node: Any) -> Any:
     """An h5 group or dataset as nested dicts of tensors (numpy arrays read whole)."""
     import h5py
@@ -118,6 +142,12 @@ def _read(node: Any) -> Any:
     if isinstance(node, h5py.Group):
         return {k: _read(node[k]) for k in node.keys()}
     return torch.from_numpy(np.asarray(node[()]))
+
+
+def _leaves(tree: Any) -> list:
+    if isinstance(tree, dict):
+        return [leaf for v in tree.values() for leaf in _leaves(v)]
+    return [tree]
 
 
 def _rows(tree: Any, index: slice) -> Any:
@@ -154,5 +184,15 @@ def episode_tensordict(group: Any, episode_id: int) -> TensorDict:
     steps = torch.arange(n + 1, dtype=torch.int32)
     root["elapsed_steps"], nxt["elapsed_steps"] = steps[:-1], steps[1:]
     root["collector"] = {"traj_ids": torch.full((n,), episode_id, dtype=torch.int64)}
+    if "env_states" in group and _has_data(group["env_states"]):
+        # T + 1 rows: the state each step starts from at the root, the one it ends in in "next".
+        states = _read(group["env_states"])
+        rows = {leaf.shape[0] for leaf in _leaves(states)}
+        if rows != {n + 1}:
+            raise ValueError(
+                f"{group.file.filename}: {group.name}/env_states has {sorted(rows)} rows for {n} steps; "
+                f"ManiSkill's files hold T + 1 = {n + 1} (the reset's state, then one per step)."
+            )
+        root["env_states"], nxt["env_states"] = _rows(states, slice(0, n)), _rows(states, slice(1, n + 1))
     root["next"] = nxt
     return TensorDict(root, batch_size=[n])
