@@ -83,14 +83,16 @@ def _info_space(infos: Mapping[str, Any]) -> gym.spaces.Dict:
 def _select(infos: Mapping[str, Any], space: gym.spaces.Dict) -> dict:
     """The entries of ``infos`` that ``space`` declares, unbatched to numpy."""
     return {
-        k: _select(infos[k], sub) if isinstance(sub, gym.spaces.Dict) else infos[k][0].numpy()
+        k: _select(infos[k], sub) if isinstance(sub, gym.spaces.Dict) else infos[k][0].cpu().numpy()
         for k, sub in space.spaces.items()
     }
 
 
 def _unbatch(x: Any) -> Any:
+    # .cpu(): on a CUDA machine ManiSkill's CPU sim renders with sapien_cuda, and its pictures come
+    # back on the GPU (a copy to host memory; a no-op for the CPU tensors).
     if isinstance(x, torch.Tensor):
-        return x[0].numpy()
+        return x[0].cpu().numpy()
     return {k: _unbatch(v) for k, v in x.items()}
 
 
@@ -165,7 +167,9 @@ class StepInObservation(gym.Wrapper):
 
     @torch.inference_mode()
     def render(self) -> Any:
-        return self.env.render()
+        """ManiSkill's ``render()`` as numpy (what crosses the pipe: a ``sapien_cuda`` frame is on the GPU)."""
+        frame = self.env.render()
+        return frame.cpu().numpy() if isinstance(frame, torch.Tensor) else frame
 
     def _pack(self, obs: Any, info: Mapping, reward: Any, terminated: Any, truncated: Any) -> dict:
         return {

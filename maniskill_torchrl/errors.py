@@ -1,5 +1,5 @@
 """What :class:`~maniskill_torchrl.ManiSkillWrapper` refuses, and how it says so: its arguments
-(a device other than the sim's, ``frame_skip``), envs it cannot serve (auto-resetting wrappers,
+(a device that is not there, ``frame_skip``), envs it cannot serve (auto-resetting wrappers,
 a reconfiguration that partial resets cannot do), unknown info keys, a step without its action,
 a call after ``close()`` (where TorchRL or a closed ManiSkill sim would fail with unrelated errors).
 
@@ -23,6 +23,7 @@ from maniskill_torchrl.cpu_vector import CPUVectorEnv
 
 __all__ = [
     "checked_base_env",
+    "checked_device",
     "checked_batch_size",
     "check_frame_skip",
     "check_info_keys",
@@ -32,7 +33,7 @@ __all__ = [
 ]
 
 
-def checked_base_env(env: Any, device: Any, *, from_pixels: bool, pixels_only: bool) -> Any:
+def checked_base_env(env: Any, *, from_pixels: bool, pixels_only: bool) -> Any:
     """The ManiSkill env (or :class:`CPUVectorEnv`) under ``env``, after checking the wrapper's arguments."""
     if env is None:
         raise TypeError(
@@ -46,13 +47,6 @@ def checked_base_env(env: Any, device: Any, *, from_pixels: bool, pixels_only: b
             f"(unwrapped: {type(getattr(env, 'unwrapped', env)).__name__}). Make one with "
             "gym.make('<Task>-v1', ...) after `import mani_skill.envs`, or CPUVectorEnv('<Task>-v1', N) "
             "for N CPU-sim envs; for other gym envs use torchrl.envs.GymWrapper."
-        )
-    env_device = canonical_device(base.device)
-    if device is not None and canonical_device(device) != env_device:
-        raise ValueError(
-            f"device={device} differs from the ManiSkill env's device {env_device}. "
-            "Make the env on the device you want (sim_backend='gpu' or 'physx_cuda:<index>' for CUDA) "
-            "or omit device: this wrapper does not copy data between devices."
         )
     resetter = auto_resetting_wrapper(env)
     if resetter is not None:
@@ -80,6 +74,22 @@ def checked_base_env(env: Any, device: Any, *, from_pixels: bool, pixels_only: b
             f"from_pixels=True needs an env made with render_mode='rgb_array' (got render_mode={base.render_mode!r})."
         )
     return base
+
+
+def checked_device(device: Any, sim_device: torch.device) -> torch.device:
+    """The env's device: ``device`` (where its outputs go), else the sim's own device."""
+    if device is None:
+        return sim_device
+    try:
+        device = canonical_device(device)
+    except RuntimeError as e:
+        raise ValueError(f"device={device!r} is not a torch device: {e}") from e
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(
+            f"device={str(device)!r}, but torch.cuda.is_available() is False: leave device out (the sim's "
+            f"device, {sim_device}) or install a CUDA build of torch."
+        )
+    return device
 
 
 def checked_batch_size(batch_size: Any, num_envs: int) -> torch.Size:

@@ -2,10 +2,11 @@
 
 :class:`ManiSkillLayout` is the wrapper's mixin for its layout: the specs learnt from the
 env's spaces and ``get_info()`` (:func:`maniskill_torchrl.specs.env_specs`), the entries of
-each reset and step built from ManiSkill's observation and info tensors, and the error of a
-step whose action is missing or misshaped. The wrapper keeps the TorchRL env itself:
-stepping, resets and seeding, the CPU workers' action repeat, closing. A mixin, not a helper
-object: its methods stay methods of the wrapper, so a step makes no extra call through it.
+each reset and step built from ManiSkill's observation and info tensors, ``render()``, and each
+step's action as ManiSkill takes it (or the error of one missing or misshaped). Every output is
+on the env's device: the sim's by default, or the one asked for (a CPU-sim env with
+``device="cuda"``). The wrapper keeps the TorchRL env itself: stepping, resets and seeding,
+closing. A mixin, not a helper object: its methods stay methods of the wrapper.
 """
 
 from __future__ import annotations
@@ -28,8 +29,9 @@ __all__ = ["ManiSkillLayout"]
 class ManiSkillLayout:
     """The TensorDict layout of :class:`~maniskill_torchrl.ManiSkillWrapper` (mixed into it).
 
-    Reads the host's ``_env``, ``_copies``, ``batch_size``, ``device``, ``action_keys`` and
-    ``render()``; sets the specs and, for ``_step``'s action check, ``_action_names`` (the
+    Reads the host's ``_env``, ``_copies``, ``_sim_device``, ``_sim_mode``, ``batch_size``,
+    ``device`` and ``action_keys``; sets ``_moves`` / ``_copy_out`` (whether outputs are copied
+    to ``device``), the specs and, for ``_step``'s action check, ``_action_names`` (the
     agents of a Dict action space, else None) and ``_action_shapes``.
 
     An unbatched env (``batch_size=[]``, one ManiSkill env) has the specs of the batch-``[1]``
@@ -38,18 +40,26 @@ class ManiSkillLayout:
     """
 
     def _init_layout(
-        self, *, from_pixels: bool, pixels_only: bool, info_keys: list[str] | None, unbatched: bool
+        self,
+        *,
+        device: torch.device,
+        from_pixels: bool,
+        pixels_only: bool,
+        info_keys: list[str] | None,
+        unbatched: bool,
     ) -> None:
         self._from_pixels = bool(from_pixels)
         self._pixels_only = bool(pixels_only)
         self._requested_info_keys = info_keys
         self._unbatched = unbatched
-        # How one ManiSkill tensor becomes an entry. Infos are always cloned: they may alias
-        # ManiSkill's buffers (elapsed_steps is updated in place). Observations are cloned where
-        # ManiSkill may write into them later (the GPU sim, sapien_cuda pictures) or made them
-        # under inference mode (the user gets normal tensors).
-        self._obs_leaf = _LEAVES[unbatched, self._copies]
-        self._info_leaf = _LEAVES[unbatched, True]
+        # Every output goes to the env's device. What the sim hands out is copied there once where
+        # it must be: ManiSkill may write into it later (the GPU sim, sapien_cuda pictures), it
+        # was made under inference mode (the user gets normal tensors), or it is elsewhere
+        # (a CPU-sim env with device="cuda"; sapien_cuda pictures of a CPU-sim env on the CPU).
+        self._moves = device != self._sim_device
+        self._copy_out = self._copies or self._moves
+        self._obs_leaf = _leaf(device, unbatched, self._copy_out)
+        self._info_leaf = _leaf(device, unbatched, True)  # infos may alias ManiSkill's (elapsed_steps)
 
     def _make_specs(self, env: Any) -> None:
         base = env.unwrapped
@@ -93,6 +103,15 @@ class ManiSkillLayout:
         check_info_keys(self._requested_info_keys, infos, base)
         return {k: infos[k] for k in self._requested_info_keys}
 
+    def render(self) -> Any:
+        """ManiSkill's ``render()`` (batched ``[B, H, W, 3]`` uint8 tensor for ``rgb_array``) on
+        ``env.device``, a copy where ManiSkill renders into a buffer that its next render overwrites."""
+        with self._sim_mode():
+            frame = self._env.render()
+        if self._copy_out and isinstance(frame, torch.Tensor):
+            frame = frame.to(self.device, copy=True)
+        return frame
+
     def _render_batched(self, frame: Any) -> torch.Tensor:
         frame = torch.as_tensor(frame, device=self.device)
         if frame.ndim == 3:
@@ -115,6 +134,28 @@ class ManiSkillLayout:
             source["pixels"] = frame[0] if self._unbatched else frame
         return source
 
+    def _sim_action(self, tensordict: TensorDictBase) -> Any:
+        """The step's action as ManiSkill takes it (batched, on the sim's device), or an error that
+        says what is missing or misshaped."""
+        action = tensordict.get("action", None)
+        if action is None:
+            raise self._action_error(tensordict, "action", None)
+        if self._action_names is None:
+            if action.shape != self._action_shapes:
+                raise self._action_error(tensordict, "action", action)
+            if self._unbatched:  # ManiSkill's own batch of one
+                action = action.unsqueeze(0)
+            return action.to(self._sim_device) if self._moves else action
+        action = {k: action.get(k, None) for k in self._action_names}
+        for k, a in action.items():
+            if a is None or a.shape != self._action_shapes[k]:
+                raise self._action_error(tensordict, ("action", k), a)
+        if self._unbatched:
+            action = {k: a.unsqueeze(0) for k, a in action.items()}
+        if self._moves:  # actions come on env.device; the sim takes them on its own
+            action = {k: a.to(self._sim_device) for k, a in action.items()}
+        return action
+
     def _action_error(self, tensordict: TensorDictBase, key: str | tuple[str, str], action: Any) -> Exception:
         expected = self._action_shapes[key[1]] if isinstance(key, tuple) else self._action_shapes
         keys = sorted(tensordict.keys(include_nested=True, leaves_only=True), key=str)
@@ -129,22 +170,15 @@ def _mapped(obs: Mapping[str, Any], leaf: Callable[[torch.Tensor], torch.Tensor]
     }
 
 
-def _clone(x: torch.Tensor) -> torch.Tensor:
-    return x.clone()
+def _leaf(device: torch.device, unbatched: bool, copy: bool) -> Callable[[torch.Tensor], torch.Tensor] | None:
+    """What a ManiSkill tensor goes through to become an entry (None: nothing): the env dim
+    dropped for an unbatched env, one copy onto ``device`` where asked."""
+    if not copy:
+        return _unbatch if unbatched else None
+    if unbatched:
+        return lambda x: x[0].to(device, copy=True)
+    return lambda x: x.to(device, copy=True)
 
 
 def _unbatch(x: torch.Tensor) -> torch.Tensor:
     return x[0]
-
-
-def _unbatch_clone(x: torch.Tensor) -> torch.Tensor:
-    return x[0].clone()
-
-
-# (unbatched, copy) -> what a ManiSkill tensor goes through (None: nothing).
-_LEAVES: dict[tuple[bool, bool], Callable[[torch.Tensor], torch.Tensor] | None] = {
-    (False, False): None,
-    (False, True): _clone,
-    (True, False): _unbatch,
-    (True, True): _unbatch_clone,
-}

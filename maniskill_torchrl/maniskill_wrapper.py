@@ -24,9 +24,11 @@ from torchrl.data.utils import DEVICE_TYPING
 from maniskill_torchrl._maniskill import canonical_device, reuses_buffers
 from maniskill_torchrl._private import EnvWrapper, classproperty, new_tensordict
 from maniskill_torchrl.cpu_vector import CPUVectorEnv
-from maniskill_torchrl.errors import ClosedEnv, check_frame_skip, checked_base_env, checked_batch_size
+from maniskill_torchrl.errors import ClosedEnv, check_frame_skip, checked_base_env, checked_batch_size, checked_device
 from maniskill_torchrl.maniskill_layout import ManiSkillLayout
+from maniskill_torchrl.saved_states import SavedStates, check_set_state
 from maniskill_torchrl.seeding import ResetSeeds
+from maniskill_torchrl.worker_repeat import WorkerRepeat
 
 if TYPE_CHECKING:
     from mani_skill.envs.sapien_env import BaseEnv
@@ -36,12 +38,14 @@ __all__ = ["ManiSkillWrapper"]
 _has_maniskill = importlib.util.find_spec("mani_skill") is not None
 
 
-class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
+class ManiSkillWrapper(ManiSkillLayout, SavedStates, WorkerRepeat, EnvWrapper):
     """A TorchRL env around a ManiSkill 3 env made with ``gym.make``.
 
-    The batch is ManiSkill's ``num_envs`` and the device is the simulation's
-    device (``cpu`` for the CPU sim, ``cuda:<index>`` for the GPU sim). Each step
-    builds one TensorDict from ManiSkill's own tensors:
+    The batch is ManiSkill's ``num_envs``. Every leaf of every output (steps, resets,
+    ``"pixels"``, ``render()``, infos, :meth:`get_state`) is on ``env.device``: by default the
+    sim's device (``cpu`` for the CPU sim, as ManiSkill's ``backend.device``, whatever renders
+    its pictures; ``cuda:<index>`` for the GPU sim). Each step builds one TensorDict from
+    ManiSkill's own tensors:
 
     - a Box observation space goes to ``"observation"``; a Dict observation
       space (``state_dict``, ``rgb``, ``rgbd``, ``sensor_data``...) keeps its
@@ -59,9 +63,10 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
 
     Nothing this env returns is written into later by the simulator. Where ManiSkill hands out
     buffers that it overwrites (the GPU sim: camera pictures, hidden actors' poses; the CPU sim
-    rendering with ``render_backend="sapien_cuda"``: camera pictures), observations,
-    ``"pixels"``, rewards and done flags are copied on their device; infos always are. The CPU
-    sim rendering on the CPU returns fresh tensors, used as they are.
+    rendering with ``render_backend="sapien_cuda"``, the default on a CUDA machine: camera
+    pictures, on the GPU), observations, ``"pixels"``, rewards and done flags are copied, once,
+    onto ``env.device``; infos always are. The CPU sim rendering on the CPU returns fresh
+    tensors, used as they are when ``env.device`` is the CPU.
 
     Auto-resetting envs are refused (``ManiSkillVectorEnv(auto_reset=True)``, gymnasium's
     ``Autoreset``): TorchRL resets done envs itself, and an env that already did would lose each
@@ -81,23 +86,22 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
     (``ManiSkillEnv(env_id, num_envs=N)`` does it on the CPU sim): one process per
     env (sub-env 0 in this one), the same batch ``[N]``, keys, specs and dtypes as the GPU sim.
 
-    Partial steps: ManiSkill steps all of its envs together (the GPU sim, and
-    the CPU sub-envs of a ``CPUVectorEnv``, which it steps all at once),
-    so a ``"_step"`` mask is not honoured by this env (use a
-    :class:`~torchrl.envs.ParallelEnv` of single CPU envs for that). Placed
-    directly on a ``CPUVectorEnv`` one, :class:`~maniskill_torchrl.transforms.ActionRepeat`
-    has the sub-envs repeat each action themselves
-    (:meth:`CPUVectorEnv.set_repeat <maniskill_torchrl.cpu_vector.CPUVectorEnv.set_repeat>`):
-    one round trip per step, and a sub-env whose episode ends mid-repeat is not stepped
-    further.
+    Partial steps: ManiSkill steps all of its envs together (the GPU sim, and the sub-envs of a
+    ``CPUVectorEnv``), so a ``"_step"`` mask is not honoured (a :class:`~torchrl.envs.ParallelEnv`
+    of single CPU envs honours it). On a ``CPUVectorEnv``, :class:`~maniskill_torchrl.transforms.ActionRepeat`
+    has the sub-envs repeat each action themselves (``maniskill_torchrl.worker_repeat``).
 
     Args:
         env: a ManiSkill env, ``gym.make("PickCube-v1", ...)``, possibly
             wrapped in further gym wrappers.
 
     Keyword Args:
-        device: must be the env's device if given (no silent copies). ``"cuda"`` and
-            ``"cuda:0"`` name the same device on a machine whose current CUDA device is 0.
+        device: where the outputs are, and where actions are taken (TorchRL's meaning, as
+            ``GymWrapper`` moves data): default, the sim's device. ``device="cuda"`` on a
+            CPU-sim env feeds a GPU policy: the sim steps on the CPU, its outputs are copied to
+            the GPU (``sapien_cuda`` pictures stay there: one copy on the GPU) and actions are
+            moved to the CPU. ``"cuda"`` and ``"cuda:0"`` name the same device on a machine whose
+            current CUDA device is 0.
         from_pixels (bool): add a ``"pixels"`` entry rendered with
             ``env.render()`` at every reset and step; the env must have been
             made with ``render_mode="rgb_array"``.
@@ -169,7 +173,9 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
         **kwargs: Any,
     ) -> None:
         check_frame_skip(kwargs.get("frame_skip"))
-        base = checked_base_env(env, device, from_pixels=from_pixels, pixels_only=pixels_only)
+        base = checked_base_env(env, from_pixels=from_pixels, pixels_only=pixels_only)
+        self._sim_device = canonical_device(base.device)
+        device = checked_device(device, self._sim_device)
         batch_size = checked_batch_size(batch_size, base.num_envs)
         # A CPUVectorEnv's sub-envs run inference mode themselves and return numpy copies.
         self._inference = bool(inference_mode) and not isinstance(base, CPUVectorEnv)
@@ -178,18 +184,18 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
         # buffers, sapien_cuda pictures) or made it under inference mode; nowhere else.
         self._copies = self._inference or reuses_buffers(base)
         self._seeds_partial_resets = isinstance(base, CPUVectorEnv)
-        # A CPUVectorEnv wrapped as is can repeat actions in its sub-envs (ActionRepeat's fast path):
-        # each step runs with the repeat asked for it, else with the one the env had when wrapped.
-        self._workers = base if env is base and isinstance(base, CPUVectorEnv) else None
-        self._plain_repeat = base.repeat if self._workers is not None else 1
-        self._next_repeat = 0  # 0: no request for the next step
+        self._init_worker_repeat(env, base)
         self._init_layout(
-            from_pixels=from_pixels, pixels_only=pixels_only, info_keys=info_keys, unbatched=not batch_size
+            device=device,
+            from_pixels=from_pixels,
+            pixels_only=pixels_only,
+            info_keys=info_keys,
+            unbatched=not batch_size,
         )
         self._seeds = ResetSeeds()
         super().__init__(
             env=env,
-            device=canonical_device(base.device),
+            device=device,
             batch_size=batch_size,
             allow_done_after_reset=allow_done_after_reset,
             **kwargs,
@@ -227,55 +233,20 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
         return bool(self._env.unwrapped.gpu_sim_enabled)
 
     # ------------------------------------------------------------------ step, reset
-    def _request_worker_repeat(self, repeat: int) -> bool:
-        """Has the next step apply its action up to ``repeat`` times inside the CPU sub-envs.
-
-        :class:`~maniskill_torchrl.transforms.ActionRepeat`'s fast path. Only a
-        :class:`CPUVectorEnv` wrapped as is (with no repeat of its own) can: returns False
-        otherwise. The request holds for the next step only; any step asked for without
-        one runs with the env's own repeat again, so a removed transform leaves plain steps.
-        """
-        if self._workers is None or self._plain_repeat != 1:
-            return False
-        self._next_repeat = repeat
-        return True
-
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        workers = self._workers
-        if workers is not None:
-            repeat = self._next_repeat
-            if repeat:  # taken first, so that a failing step leaves no request behind
-                self._next_repeat = 0
-            else:  # no write: an nn.Module attribute write costs more than the rest of this block
-                repeat = self._plain_repeat
-            if workers.repeat != repeat:  # a round trip, only when the repeat changes
-                workers.set_repeat(repeat)
-        action = tensordict.get("action", None)
-        if action is None:
-            raise self._action_error(tensordict, "action", None)
-        if self._action_names is None:
-            if action.shape != self._action_shapes:
-                raise self._action_error(tensordict, "action", action)
-            if self._unbatched:  # ManiSkill's own batch of one
-                action = action.unsqueeze(0)
-        else:
-            action = {k: action.get(k, None) for k in self._action_names}
-            for k, a in action.items():
-                if a is None or a.shape != self._action_shapes[k]:
-                    raise self._action_error(tensordict, ("action", k), a)
-            if self._unbatched:
-                action = {k: a.unsqueeze(0) for k, a in action.items()}
+        if self._workers is not None:
+            self._set_worker_repeat()
+        action = self._sim_action(tensordict)
         with self._sim_mode():
             obs, reward, terminated, truncated, info = self._env.step(action)
         source = self._to_tensordict(obs, info)
         # TorchRL's float32 reward for every task: some report bool (DrawTriangle-v1) or float64
         # (RotateValveLevel*) rewards. The cast is a copy; done below is a new tensor.
-        if reward.dtype != torch.float32:
-            reward = reward.to(torch.float32)
-        elif self._copies:
-            reward = reward.clone()
-        if self._copies:
-            terminated, truncated = terminated.clone(), truncated.clone()
+        if self._copy_out or reward.dtype != torch.float32:
+            reward = reward.to(self.device, torch.float32, copy=self._copy_out)
+        if self._copy_out:
+            terminated = terminated.to(self.device, copy=True)
+            truncated = truncated.to(self.device, copy=True)
         # ManiSkill gives [B] tensors: unsqueeze is the cheapest way to [B, 1] (view(shape) costs
         # twice as much on the CPU sim, where each op counts), and an unbatched env's [1] entries
         # are ManiSkill's [1] tensors as they are; other shapes go through view.
@@ -318,11 +289,7 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
     ) -> TensorDictBase:
         if kwargs:
             raise TypeError(f"Unexpected reset arguments: {sorted(kwargs)}")
-        if (env_states is not None) != bool(set_state):
-            raise ValueError(
-                "A reset to saved states takes both set_state=True and env_states (from env.get_state()): "
-                "env.reset(td, set_state=True, env_states=states), or env.reset_to_state(states, td)."
-            )
+        check_set_state(set_state, env_states)
         options = dict(options) if options else {}
         reset = tensordict.get("_reset", None) if tensordict is not None else None
         env_idx = None
@@ -333,15 +300,11 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
             if not env_idx.numel():
                 return tensordict.exclude("_reset")
             if env_idx.numel() < reset.numel():
-                options["env_idx"] = env_idx
+                env_idx = options["env_idx"] = env_idx.to(self._sim_device) if self._moves else env_idx
             else:
                 env_idx = None
         if set_state:
-            options["reset_to_env_states"] = {"env_states": self._state_rows(env_states, env_idx)}
-            # Nothing is drawn: the saved state, not a seed, makes this episode's start.
-            with self._sim_mode():
-                obs, info = self._env.reset(seed=seed, options=options)
-            return new_tensordict(self._to_tensordict(obs, info), batch_size=self.batch_size, device=self.device)
+            return self._reset_to_states(env_states, env_idx, seed, options)
         if "env_idx" not in options:
             if seed is not None:
                 self._seeds.set(seed)
@@ -358,57 +321,7 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
     def _set_seed(self, seed: int | None) -> None:
         self._seeds.set(seed)
 
-    # -------------------------------------------------------------- saved states
-    def get_state(self) -> TensorDictBase:
-        """Every env's ManiSkill sim state (``get_state_dict()``: actor and articulation states,
-        controller state) as a TensorDict of this env's batch, to reset to later with
-        :meth:`reset_to_state` (or ``env.reset(td, set_state=True, env_states=state)``).
-
-        Examples:
-            >>> from maniskill_torchrl import ManiSkillEnv
-            >>> env = ManiSkillEnv("PickCube-v1", obs_mode="state")
-            >>> start = env.reset(seed=1)
-            >>> state = env.get_state()
-            >>> _ = env.rollout(3)
-            >>> (env.reset_to_state(state)["observation"] == start["observation"]).all().item()
-            True
-        """
-        with self._sim_mode():
-            state = self.base_env.get_state_dict()
-        state = new_tensordict(_tensor_tree(state), batch_size=torch.Size([self.base_env.num_envs]), device=self.device)
-        return state[0] if self._unbatched else state
-
-    def reset_to_state(
-        self, env_states: TensorDictBase | Mapping, tensordict: TensorDictBase | None = None, **kwargs: Any
-    ) -> TensorDictBase:
-        """Resets to saved ManiSkill states (:meth:`get_state`, or a trajectory file's ``env_states``
-        of one step): every env, or those of ``tensordict``'s ``"_reset"`` mask. ``env_states`` has
-        this env's batch (one row per env; the rows of the envs not being reset are not read).
-
-        The same as ``env.reset(tensordict, set_state=True, env_states=env_states)``; on a
-        :class:`~torchrl.envs.TransformedEnv`, call that form on the transformed env so that its
-        transforms reset too.
-        """
-        return self.reset(tensordict, set_state=True, env_states=env_states, **kwargs)
-
-    def _state_rows(self, env_states: TensorDictBase | Mapping, env_idx: torch.Tensor | None) -> dict:
-        """ManiSkill's ``reset_to_env_states`` batch: the rows of the envs being reset, as a dict."""
-        if not isinstance(env_states, TensorDictBase):
-            env_states = new_tensordict(_tensor_tree(env_states), batch_size=torch.Size([]))
-        if self._unbatched and env_states.batch_dims == 0:
-            env_states = env_states.unsqueeze(0)
-        if env_idx is not None:
-            env_states = env_states[env_idx]
-        return env_states.to(self.device).to_dict()
-
     # -------------------------------------------------------------- misc
-    def render(self) -> Any:
-        """ManiSkill's ``render()`` (batched ``[B, H, W, 3]`` uint8 tensor for ``rgb_array``), a copy
-        where ManiSkill renders into a buffer that its next render overwrites."""
-        with self._sim_mode():
-            frame = self._env.render()
-        return frame.clone() if self._copies and isinstance(frame, torch.Tensor) else frame
-
     def close(self, *, raise_if_closed: bool = True) -> None:
         env = self.__dict__.get("_env")
         if env is not None and not isinstance(env, ClosedEnv):
@@ -432,8 +345,3 @@ class ManiSkillWrapper(ManiSkillLayout, EnvWrapper):
             f"batch_size={list(self.batch_size)}, "
             f"device={self.device}, gpu_sim={self.gpu_sim_enabled})"
         )
-
-
-def _tensor_tree(tree: Mapping) -> dict:
-    """A nested dict of tensors (ManiSkill's state dict) as plain dicts of normal tensors."""
-    return {k: _tensor_tree(v) if isinstance(v, Mapping) else torch.as_tensor(v).clone() for k, v in tree.items()}

@@ -37,7 +37,7 @@ from torchrl.envs import Compose, StepCounter, TransformedEnv
 from helpers import assert_same, bits, close_envs, make_gym_env, random_actions
 from maniskill_torchrl import ActionRepeat, EpisodeMetrics, ManiSkillEnv, ManiSkillWrapper
 from maniskill_torchrl._maniskill import canonical_device, reuses_buffers
-from maniskill_torchrl.errors import checked_base_env
+from maniskill_torchrl.errors import checked_base_env, checked_device
 from toy_env import ToyEnv
 
 # Ops that read a device value back to the host: each one is a CUDA host sync.
@@ -67,6 +67,7 @@ class CountOps(TorchDispatchMode):
 # ----------------------------------------------------------------------------- reused buffers
 RGB_KWARGS = dict(
     obs_mode="rgb",
+    render_backend="cpu",  # the oracle: ManiSkill's CPU read, also on a machine with CUDA
     render_mode="rgb_array",
     max_episode_steps=7,
     sensor_configs=dict(width=32, height=32),
@@ -216,22 +217,26 @@ def gym_env():
     close_envs([env])
 
 
-def test_cuda_device_named_either_way(gym_env, monkeypatch):
-    base = gym_env.unwrapped
-    monkeypatch.setattr(base, "device", torch.device("cuda"))  # what ManiSkill's GPU sim reports
+def test_cuda_device_named_either_way(monkeypatch):
+    """The env's device: the sim's when none is asked (ManiSkill's GPU sim says "cuda", TorchRL
+    "cuda:0"), else the one asked for, named either way."""
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)  # what a CUDA machine answers
+    monkeypatch.setattr(torch.cuda, "current_device", lambda: 0)
+    sim = canonical_device("cuda", current_cuda=0)
     for device in ("cuda", "cuda:0", torch.device("cuda:0"), None):
-        assert checked_base_env(gym_env, device, from_pixels=False, pixels_only=False) is base
-    with pytest.raises(ValueError, match=r"device=cuda:1 differs from the ManiSkill env's device cuda:0"):
-        checked_base_env(gym_env, "cuda:1", from_pixels=False, pixels_only=False)
-    with pytest.raises(ValueError, match=r"device=cpu differs"):
-        checked_base_env(gym_env, "cpu", from_pixels=False, pixels_only=False)
+        assert checked_device(device, sim) == torch.device("cuda", 0)
+    assert checked_device("cpu", sim) == torch.device("cpu")
+    assert checked_device("cuda:1", sim) == torch.device("cuda", 1)
 
 
-def test_cpu_env_device(gym_env):
+def test_device_that_is_not_there_is_refused(gym_env, monkeypatch):
     env = ManiSkillWrapper(gym_env, device="cpu")
     assert env.device == torch.device("cpu")
-    with pytest.raises(ValueError, match=r"device=cuda:0 differs from the ManiSkill env's device cpu"):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)  # a machine without CUDA
+    with pytest.raises(ValueError, match=r"device='cuda:0', but torch.cuda.is_available\(\) is False"):
         ManiSkillWrapper(gym_env, device="cuda:0")
+    with pytest.raises(ValueError, match=r"device='nowhere' is not a torch device"):
+        ManiSkillWrapper(gym_env, device="nowhere")
 
 
 # ----------------------------------------------------------------------------- host syncs
@@ -412,8 +417,8 @@ def test_reconfiguration_that_partial_resets_cannot_do_is_refused(gym_env, monke
     monkeypatch.setattr(base, "num_envs", 4)  # a GPU-sim batch
     monkeypatch.setattr(base, "reconfiguration_freq", 1)
     with pytest.raises(ValueError, match=r"reconfiguration_freq=1 with num_envs=4.*reconfiguration_freq=0"):
-        checked_base_env(gym_env, None, from_pixels=False, pixels_only=False)
+        checked_base_env(gym_env, from_pixels=False, pixels_only=False)
     # Envs that end together never reset partially: ManiSkillVectorEnv's own exception.
-    assert checked_base_env(vec, None, from_pixels=False, pixels_only=False) is base
+    assert checked_base_env(vec, from_pixels=False, pixels_only=False) is base
     monkeypatch.setattr(base, "reconfiguration_freq", 0)
-    assert checked_base_env(gym_env, None, from_pixels=False, pixels_only=False) is base
+    assert checked_base_env(gym_env, from_pixels=False, pixels_only=False) is base
