@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Builds the GPU kit: everything the accelerator machine lacks to run tests/gpu and
-# benchmarks/bench_gpu.py, as carries for the device tool (`make gpu-kit`).
+# Builds the GPU kit: everything the accelerator machine lacks to run the checks of
+# scripts/gpu_check.sh (the whole CPU suite, tests/gpu, benchmarks/bench_gpu.py, the demo,
+# the example smoke runs, a collection sweep), as carries for the device tool (`make gpu-kit`).
 #
 #   bash scripts/gpu_kit.sh            # fill .gpu/ (idempotent: downloads are cached)
 #   bash scripts/gpu_kit.sh --verify   # then check the slimmed wheels on the CPU sim here
@@ -11,9 +12,13 @@
 # and reaches no package registry. This script puts under .gpu/ (git-ignored):
 #
 #   .gpu/kit/wheels/  cp312 manylinux x86_64 wheels of what that machine lacks
-#                     (torchrl, tensordict, gymnasium, sapien, mani_skill and their
-#                     missing dependencies, pinned below), mani_skill and sapien
-#                     slimmed by scripts/gpu_kit_slim.py; no torch, no nvidia-* wheels
+#                     (torchrl, tensordict, gymnasium, sapien, mani_skill, imageio-ffmpeg
+#                     and their missing dependencies, pinned below), mani_skill and sapien
+#                     slimmed by scripts/gpu_kit_slim.py (every asset the CPU suite opens
+#                     stays); no torch, no nvidia-* wheels; and this project's own wheel,
+#                     built here (maniskill_torchrl-*.whl: gpu_check.sh installs it into
+#                     the machine's Python, so that the maniskill-torchrl console script
+#                     exists beside python3, as the suite expects)
 #   .gpu/kit/gl/      Debian's Vulkan loader and GL/EGL dispatch .debs (libvulkan1 ...),
 #                     unpacked to / there when the machine has no libvulkan.so.1
 #   .gpu/kit/x11/     libX11 and its libraries (SAPIEN's renderer links libX11.so.6),
@@ -22,14 +27,16 @@
 #
 # Each direct subfolder of .gpu/ is one carry of the device tool. One command carries
 # at most 64 MiB, the repository included, so a part holds at most 60 MiB (and at most
-# 64 MiB minus the repository's size); the kit fits in one part. Should it outgrow one,
-# wheels spill into .gpu/kit2, .gpu/kit3... (one `run` each, installed back to back:
-# scripts/gpu_check.sh --install-only).
+# 64 MiB minus the repository's size). The kit takes two parts: .gpu/kit (the .debs and
+# what the wheels do not spill) and .gpu/kit2 (first fit, biggest wheel first). Carry and
+# install .gpu/kit2 first (`bash scripts/gpu_check.sh --install-only`), then run the
+# check with .gpu/kit, back to back while the machine is warm (benchmarks/README.md).
 #
 # Downloads are cached in $GPU_KIT_CACHE (default ~/.cache/maniskill_torchrl/gpu-kit);
 # a second run downloads nothing and rebuilds .gpu/ from the cache in seconds.
 #
 # Knobs: PYTHON (default python3; needs pip), GPU_KIT_CACHE, GPU_KIT_PART_MIB (60),
+#        GPU_KIT_SLACK_MIB (4: kept free in each command for the repository's growth),
 #        GPU_KIT_NO_DEBS=1 (skip the .debs: apt-get is needed to fetch them).
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
@@ -37,6 +44,7 @@ cd "$(dirname "${BASH_SOURCE[0]}")/.."
 PY="${PYTHON:-python3}"
 CACHE="${GPU_KIT_CACHE:-$HOME/.cache/maniskill_torchrl/gpu-kit}"
 PART_MIB="${GPU_KIT_PART_MIB:-60}"
+SLACK_MIB="${GPU_KIT_SLACK_MIB:-4}"
 KIT=.gpu
 VERIFY=0
 for arg in "$@"; do
@@ -62,12 +70,12 @@ PINS=(
     ipython==9.18.1 ipython-pygments-lexers==1.1.1 traitlets==5.16.1 matplotlib-inline==0.2.2
     prompt-toolkit==3.0.53 wcwidth==0.9.4 stack-data==0.6.3 executing==2.3.0 asttokens==3.0.2
     pure-eval==0.2.4 pexpect==4.9.0 ptyprocess==0.7.0
+    imageio-ffmpeg==0.7.0
 )
 # Declared dependencies deliberately left out (wheels are installed with --no-deps).
 EXCLUDED=(
     "mplib==0.1.1 + toppra: mani_skill's motion-planning examples only (11.5 + 0.9 MiB)"
     "jedi + parso: IPython's tab completion only (4.8 MiB)"
-    "imageio-ffmpeg: video writing only (65 MiB)"
     "opencv-python: the machine has opencv-python-headless (same cv2 module)"
     "httpx2, httpcore2, truststore: huggingface_hub 2.x needs; the machine's huggingface-hub 1.x has its own"
     "torch, triton, nvidia-*, cuda-*: preinstalled there (torch 2.11.0+cu130)"
@@ -79,7 +87,9 @@ PLATFORMS=(manylinux_2_28_x86_64 manylinux_2_27_x86_64 manylinux_2_17_x86_64 man
 norm() { echo "$1" | tr 'A-Z' 'a-z' | sed -E 's/[-_.]+/_/g'; }
 
 # ------------------------------------------------------------------ wheels
-mkdir -p "$CACHE/wheels" "$CACHE/slim" "$CACHE/gl" "$CACHE/x11"
+# imageio-ffmpeg 0.7.0 (29.5 MiB, manylinux2014; ffmpeg 7.0.2): the newest, 0.8.x, is 65 MiB, more
+# than one carry. The CPU suite and the demo write .mp4 through it (imageio's ffmpeg plugin).
+mkdir -p "$CACHE/wheels" "$CACHE/slim" "$CACHE/gl" "$CACHE/x11" "$CACHE/project"
 missing=()
 for pin in "${PINS[@]}"; do
     name="$(norm "${pin%%==*}")" ver="${pin##*==}"
@@ -110,6 +120,19 @@ for dist in mani_skill sapien; do
         "$PY" scripts/gpu_kit_slim.py "$src" "$CACHE/slim"
     fi
 done
+
+# This project as a wheel (pure Python), built from the working tree each time: gpu_check.sh
+# installs it into the machine's Python (the console script), while the suite imports the
+# repository's copy (PYTHONPATH). Needs setuptools in the building Python (.venv has it).
+BUILD_PY="$PY"
+[[ -x .venv/bin/python ]] && BUILD_PY=.venv/bin/python
+rm -f "$CACHE"/project/*.whl
+had_build=0
+[[ -e build ]] && had_build=1
+"$BUILD_PY" -m pip wheel -q --no-deps --no-build-isolation --no-index -w "$CACHE/project" . 2>&1 |
+    { grep -v "^WARNING: Location 'file://.*' is ignored" || true; }
+ls "$CACHE"/project/maniskill_torchrl-*-py3-none-any.whl >/dev/null 2>&1 || die "building this project's wheel failed"
+((had_build)) || rm -rf build  # setuptools' build folder, where this build made it
 
 # -------------------------------------------------------------------- debs
 fetch_debs() {  # dir pkgs... (the device README's recipe: amd64 lists of our own, no system change)
@@ -146,10 +169,11 @@ repo_bytes="$( { { git ls-files -z; git ls-files -z --others --exclude-standard;
     xargs -0 -r stat -c %s 2>/dev/null || true; } | awk '{ s += $1 } END { print s + 0 }')"
 
 rm -rf "$KIT.tmp" && mkdir -p "$KIT.tmp"
-"$PY" - "$CACHE" "$KIT.tmp" "$PART_MIB" "$repo_bytes" "${PINS[@]}" <<'EOF'
+"$PY" - "$CACHE" "$KIT.tmp" "$PART_MIB" "$repo_bytes" "$SLACK_MIB" "${PINS[@]}" <<'EOF'
 import os, re, shutil, sys
 
-cache, out, part_mib, repo_bytes, pins = sys.argv[1], sys.argv[2], float(sys.argv[3]), int(sys.argv[4]), sys.argv[5:]
+cache, out, part_mib, repo_bytes, slack_mib = sys.argv[1], sys.argv[2], float(sys.argv[3]), int(sys.argv[4]), float(sys.argv[5])
+pins = sys.argv[6:]
 norm = lambda s: re.sub(r"[-_.]+", "_", s).lower()
 want = {norm(p.split("==")[0]): p.split("==")[1] for p in pins}
 wheels = []
@@ -162,24 +186,34 @@ for f in sorted(os.listdir(os.path.join(cache, "wheels"))):
 missing = set(want) - {norm(os.path.basename(w).split("-")[0]) for w in wheels}
 if missing:
     sys.exit(f"gpu-kit: ERROR: wheels missing from the cache: {sorted(missing)}")
+wheels += sorted(os.path.join(cache, "project", f) for f in os.listdir(os.path.join(cache, "project")) if f.endswith(".whl"))
 debs = {d: sorted(os.path.join(cache, d, f) for f in os.listdir(os.path.join(cache, d)) if f.endswith(".deb"))
         for d in ("gl", "x11") if os.path.isdir(os.path.join(cache, d))}
 
 MiB = 2**20
-limit = min(part_mib * MiB, 64 * MiB - repo_bytes - 64 * 1024)  # 64 KiB slack for the manifest
+# The repository may grow between this build and the run: keep slack_mib free in every command.
+limit = min(part_mib * MiB, 64 * MiB - repo_bytes - slack_mib * MiB)
 size = os.path.getsize
-parts = [{"wheels": [], "debs": debs, "bytes": sum(size(f) for fs in debs.values() for f in fs)}]
-for w in sorted(wheels, key=size, reverse=True):  # first fit, biggest first
-    for part in parts:
-        if part["bytes"] + size(w) <= limit:
-            break
-    else:
-        part = {"wheels": [], "debs": {}, "bytes": 0}
-        parts.append(part)
+deb_bytes = sum(size(f) for fs in debs.values() for f in fs)
+for w in wheels:
     if size(w) > limit:
         sys.exit(f"gpu-kit: ERROR: {os.path.basename(w)} alone ({size(w) / MiB:.1f} MiB) exceeds a part ({limit / MiB:.1f} MiB)")
-    part["wheels"].append(w)
-    part["bytes"] += size(w)
+
+
+def assign(k):
+    """k parts, balanced: each wheel, biggest first, into the part with the fewest bytes so far
+    (the .debs in the first, .gpu/kit); None if a part would exceed the limit."""
+    parts = [{"wheels": [], "debs": debs if i == 0 else {}, "bytes": deb_bytes if i == 0 else 0} for i in range(k)]
+    for w in sorted(wheels, key=size, reverse=True):
+        part = min(parts, key=lambda p: p["bytes"])
+        part["wheels"].append(w)
+        part["bytes"] += size(w)
+    return parts if all(p["bytes"] <= limit for p in parts) else None
+
+
+k = 1
+while (parts := assign(k)) is None:
+    k += 1
 
 for i, part in enumerate(parts):
     name = "kit" if i == 0 else f"kit{i + 1}"
@@ -200,7 +234,8 @@ EOF
 {
     echo "maniskill_torchrl GPU kit, built $(date -u +%Y-%m-%dT%H:%M:%SZ) by scripts/gpu_kit.sh"
     echo "For: python3.12 (cp312) manylinux x86_64 with torch 2.11 preinstalled; install with"
-    echo "  bash scripts/gpu_check.sh  (pip install --no-index --no-deps --target ... .gpu/kit/wheels/*.whl)"
+    echo "  bash scripts/gpu_check.sh  (pip install --no-index --no-deps --target ... .gpu/kit*/wheels/*.whl;"
+    echo "  maniskill_torchrl-*.whl into the machine's Python itself, for its console script)"
     echo
     echo "Left out on purpose (declared dependencies; the wheels are installed with --no-deps):"
     for e in "${EXCLUDED[@]}"; do echo "  - $e"; done
@@ -247,6 +282,9 @@ for part in "$KIT"/*/; do
         printf "gpu-kit:   %-10s %6.1f MiB (%d wheels, %d .debs) + repo %.1f MiB = %.1f MiB per run\n",
                p, b / 1048576, w, d, r / 1048576, (b + r) / 1048576 }' 
     if (( bytes > PART_MIB * 1048576 || bytes + repo_bytes > 64 * 1048576 )); then status=1; fi
+    if (( bytes + repo_bytes > (64 - SLACK_MIB) * 1048576 )); then
+        log "WARNING: ${part%/} leaves less than ${SLACK_MIB} MiB for the repository's growth"
+    fi
 done
 ((status == 0)) || die "a part exceeds its limit"
 log "the largest wheels:"
@@ -271,7 +309,7 @@ if [[ $VERIFY == 1 ]]; then
     trap 'rm -rf "$target"' EXIT
     .venv/bin/python -m pip install -q --no-index --no-deps --no-compile --target "$target" \
         "$vdir"/slim/sapien-*.whl "$KIT"/kit*/wheels/mani_skill-*.whl
-    log "verify: slimmed mani_skill + sapien ($tag) from $target, CPU sim, obs_mode=state"
+    log "verify: slimmed mani_skill + sapien ($tag) from $target, CPU sim: the CPU suite's tasks, state and rgb"
     PYTHONPATH="$target${PYTHONPATH:+:$PYTHONPATH}" .venv/bin/python - "$target" <<'EOF'
 import os, sys, warnings
 warnings.filterwarnings("ignore")
@@ -282,13 +320,19 @@ target = sys.argv[1]
 for mod in (mani_skill, sapien):
     assert mod.__file__.startswith(target), f"{mod.__name__} imported from {mod.__file__}, not {target}"
 assert not os.path.exists(os.path.join(os.path.dirname(mani_skill.__file__), "assets", "environment_maps")), "not slimmed"
-for env_id in ("PushCube-v1", "MS-CartpoleBalance-v1"):
-    env = gym.make(env_id, num_envs=1, obs_mode="state", sim_backend="physx_cpu")
-    obs, info = env.reset(seed=0)
-    for _ in range(5):
-        obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
-    print(f"gpu-kit:   {env_id}: obs {tuple(obs.shape)}, infos {sorted(info)}: ok")
-    env.close()
+# The tasks that the GPU checks and the CPU suite make (scripts/gpu_kit_slim.py), with pictures:
+# a camera or a render opens the visual meshes (the D415 of panda_wristcam, the D'Claw's .glb).
+TASKS = ("PushCube-v1", "MS-CartpoleBalance-v1", "PickCube-v1", "PullCube-v1", "StackCube-v1",
+         "TwoRobotPickCube-v1", "RotateValveLevel0-v1", "DrawTriangle-v1")
+for env_id in TASKS:
+    for obs_mode in ("state", "rgb"):
+        env = gym.make(env_id, num_envs=1, obs_mode=obs_mode, render_mode="rgb_array", sim_backend="physx_cpu")
+        obs, info = env.reset(seed=0)
+        for _ in range(3):
+            obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+        env.render()
+        env.close()
+    print(f"gpu-kit:   {env_id}: state and rgb, reset, step, render: ok")
 print("gpu-kit: verify: ok")
 EOF
 fi

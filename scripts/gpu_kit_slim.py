@@ -1,23 +1,31 @@
 """Slims a wheel: drops the files that the GPU checks never read, rewrites RECORD.
 
 Used by ``scripts/gpu_kit.sh`` (``make gpu-kit``) to fit mani_skill and sapien,
-with everything else the accelerator machine lacks, into one carry of at most
+with everything else the accelerator machine lacks, into carries of at most
 60 MiB. The result is still a wheel that ``pip install --no-deps --target``
 installs: same name and version, RECORD lists exactly the files kept, and
 ``<name>.dist-info/SLIMMED.txt`` says what was dropped and why.
 
-What is dropped (``SLIM_RULES``), and why it is safe for the GPU checks
-(PushCube-v1 and MS-CartpoleBalance-v1 with ``obs_mode="state"``; the files
-these tasks open were listed with ``strace -e openat`` on the CPU sim):
+The kit runs the GPU checks (``tests/gpu``, ``benchmarks/bench_gpu.py``: PushCube-v1 and
+MS-CartpoleBalance-v1) and the whole CPU suite (``scripts/gpu_check.sh``), so every asset
+that the suite's tasks open stays. Those tasks are PickCube-v1, PushCube-v1 (and the test
+tasks registered on it), PullCube-v1, StackCube-v1, MS-CartpoleBalance-v1,
+TwoRobotPickCube-v1 (two ``panda_wristcam``: the RealSense D415 mesh), RotateValveLevel0-v1
+(the D'Claw) and DrawTriangle-v1 (``panda_stick``); PickSingleYCB-v1 and AnymalC-Reach-v1
+appear only as tasks whose assets are missing. The files they open were listed with
+``strace -f -e trace=openat,stat`` while each task was made with ``obs_mode="state_dict"``
+and ``"rgb"``, reset, stepped and rendered on the CPU sim (2026-11-26, mani_skill 3.0.1).
+
+What is dropped (``SLIM_RULES``), and why it is safe for those checks:
 
 - mani_skill: the environment map (no Python code references it), every
-  robot's assets but the Panda's (PushCube uses ``panda``: ``panda_v2.urdf``
-  with ``franka_description`` meshes; CartpoleBalance is an MJCF file under
-  ``envs/tasks/control/assets``), the Panda folder's camera and Sciurus17
-  meshes (``panda_v3``, mobile Pandas), the ReplicaCAD / kitchen-counter scene
-  assets, an unused 2k floor texture and the ManiSkill2 scene mesh. All Python
-  modules stay, so every task still registers; tasks that need a dropped asset
-  fail when they are made.
+  robot's assets but the Panda's and the D'Claw's files above (the Panda:
+  ``panda_v2`` / ``panda_v3`` / ``panda_stick`` URDFs with ``franka_description``
+  meshes; CartpoleBalance is an MJCF file under ``envs/tasks/control/assets``),
+  the Panda folder's other camera meshes (D435, plug) and Sciurus17 meshes
+  (mobile Pandas), the ReplicaCAD / kitchen-counter scene assets, an unused 2k
+  floor texture and the ManiSkill2 scene mesh. All Python modules stay, so every
+  task still registers; tasks that need a dropped asset fail when they are made.
 - sapien: C++ headers, the macOS Vulkan loader and the active-light patterns
   of SAPIEN's stereo depth sensor (``sapien.sensor``; ManiSkill's state
   observations do not use it). The OpenImageDenoise libraries stay: SAPIEN's
@@ -42,8 +50,8 @@ SLIM_RULES: dict[str, list[tuple[str, str]]] = {
     "mani_skill": [
         ("mani_skill/assets/environment_maps/*", "environment map: not referenced by any code"),
         ("mani_skill/assets/maniskill2-scene-2.glb", "ManiSkill2 scene mesh: unused by the checked tasks"),
-        ("mani_skill/assets/robots/*", "robot assets other than the Panda's"),
-        ("mani_skill/assets/robots/panda/realsense2_description/*", "camera meshes (panda_v3 / mobile Panda only)"),
+        ("mani_skill/assets/robots/*", "robot assets other than the Panda's and the D'Claw's"),
+        ("mani_skill/assets/robots/panda/realsense2_description/*", "camera meshes other than the D415"),
         ("mani_skill/assets/robots/panda/sciurus17_description/*", "Sciurus17 meshes (mobile Panda only)"),
         ("mani_skill/utils/scene_builder/replicacad/*", "ReplicaCAD scene assets (downloaded scenes)"),
         ("mani_skill/utils/scene_builder/kitchen_counter/*", "kitchen-counter scene assets"),
@@ -62,6 +70,12 @@ KEEP: dict[str, list[str]] = {
         "mani_skill/assets/robots/panda/*.urdf",
         "mani_skill/assets/robots/panda/*.srdf",
         "mani_skill/assets/robots/panda/franka_description/*",
+        # panda_wristcam (TwoRobotPickCube-v1): the wrist camera's mesh.
+        "mani_skill/assets/robots/panda/realsense2_description/meshes/d415.stl",
+        # RotateValveLevel0-v1: the D'Claw's URDF, collision meshes and the visual meshes it names.
+        "mani_skill/assets/robots/dclaw/dclaw_gripper_glb.urdf",
+        "mani_skill/assets/robots/dclaw/meshes/collision/*",
+        "mani_skill/assets/robots/dclaw/meshes/visual/*.glb",
     ],
     "sapien": ["*.py"],
 }
