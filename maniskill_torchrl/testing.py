@@ -3,9 +3,11 @@ own suite uses them, and so can yours (a task you registered with ``@register_en
 
 - :func:`assert_tensordict_equal`: two TensorDicts equal to the bit, with an error that names the
   first differing entry and what differs.
+- :func:`assert_on_device`: every leaf of a TensorDict (or a tensor, a nested mapping, a tuple
+  or list of them) on one device, with an error that lists the leaves elsewhere.
 - :func:`check_maniskill_env`: a task through :class:`~maniskill_torchrl.ManiSkillEnv` against
   raw ManiSkill (and, for one env, the gym shim against ManiSkill's ``CPUGymWrapper``), with the
-  same seeds and actions, resets included.
+  same seeds and actions, resets included, and every output against the env's specs and device.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 
-__all__ = ["assert_tensordict_equal", "check_maniskill_env"]
+__all__ = ["assert_on_device", "assert_tensordict_equal", "check_maniskill_env"]
 
 # Element size -> the integer dtype whose values are a float's bits.
 _BITS = {1: torch.uint8, 2: torch.int16, 4: torch.int32, 8: torch.int64}
@@ -108,6 +110,97 @@ def assert_tensordict_equal(actual: TensorDictBase, expected: TensorDictBase, *,
             raise AssertionError(f"{prefix}{key!r}: {difference}")
 
 
+def _same_device(actual: torch.device, wanted: torch.device) -> bool:
+    """One device, however named: ``"cuda"`` is the current CUDA device, and a device type
+    without an index (``"cpu"``) matches any index of that type."""
+    from maniskill_torchrl._maniskill import canonical_device
+
+    actual, wanted = canonical_device(actual), canonical_device(wanted)
+    if actual.type != wanted.type:
+        return False
+    return actual.index is None or wanted.index is None or actual.index == wanted.index
+
+
+def _off_device(data: Any, device: torch.device, path: tuple, found: list) -> None:
+    """Appends ``(path, device)`` for every leaf of ``data`` not on ``device``."""
+    if isinstance(data, torch.Tensor):
+        if not _same_device(data.device, device):
+            found.append((path, data.device))
+    elif isinstance(data, TensorDictBase):
+        if data.device is not None and not _same_device(data.device, device):
+            found.append((path + ("<TensorDict device>",), data.device))
+        for key, value in data.items(include_nested=True):
+            key = key if isinstance(key, tuple) else (key,)
+            if isinstance(value, TensorDictBase):
+                if value.device is not None and not _same_device(value.device, device):
+                    found.append((path + key + ("<TensorDict device>",), value.device))
+            elif isinstance(value, torch.Tensor) and not _same_device(value.device, device):
+                found.append((path + key, value.device))
+    elif isinstance(data, Mapping):
+        for key, value in data.items():
+            _off_device(value, device, path + (key,), found)
+    elif isinstance(data, (tuple, list)):
+        for i, value in enumerate(data):
+            _off_device(value, device, path + (i,), found)
+    elif isinstance(data, np.ndarray) and torch.device(device).type != "cpu":
+        found.append((path, "numpy (host memory)"))
+
+
+def assert_on_device(data: Any, device: torch.device | str, *, msg: str = "") -> None:
+    """Asserts that every leaf of ``data`` is on ``device``.
+
+    ``data`` is a TensorDict, a tensor, a (nested) mapping, or a tuple or list of them (what an
+    env's ``reset``, ``step``, ``render`` or a gym ``step`` returns). Every tensor leaf counts,
+    nested ones included, and so does the device label of every TensorDict in it (a TensorDict
+    said to be on the CPU whose leaves are on CUDA fails on the leaves). Numpy arrays are host
+    memory: they fail unless ``device`` is the CPU. Other values (numbers, strings) have no
+    device and pass. ``"cuda"`` is the current CUDA device, ``"cuda:0"`` names it too.
+
+    The :class:`AssertionError` lists every offending key path with its device. Use it on every
+    output of an env to check TorchRL's rule that outputs are on ``env.device``
+    (:func:`check_maniskill_env` does, at every reset and step).
+
+    Args:
+        data: what to check.
+        device: where every leaf must be.
+
+    Keyword Args:
+        msg (str): prefixed to the error message.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from maniskill_torchrl.testing import assert_on_device
+        >>> td = TensorDict({"obs": torch.zeros(2, 3), ("next", "reward"): torch.ones(2, 1)}, [2])
+        >>> assert_on_device(td, "cpu")
+        >>> assert_on_device({"pixels": torch.zeros(2, device="meta"), "t": torch.ones(1)}, "cpu")
+        Traceback (most recent call last):
+        ...
+        AssertionError: 1 leaf not on cpu: 'pixels' on meta
+    """
+    if not isinstance(data, (torch.Tensor, Mapping, TensorDictBase, tuple, list)):
+        raise TypeError(
+            "assert_on_device checks a TensorDict, a tensor, a mapping, or a tuple or list of them; "
+            f"got a {type(data).__name__}."
+        )
+    device = torch.device(device)
+    found: list = []
+    _off_device(data, device, (), found)
+    if not found:
+        return
+    prefix = f"{msg}: " if msg else ""
+
+    def name(path: tuple) -> str:
+        if not path:
+            return "the tensor"
+        return repr(path[0]) if len(path) == 1 and isinstance(path[0], str) else repr(path)
+
+    listed = ", ".join(f"{name(path)} on {where}" for path, where in found[:20])
+    more = f", and {len(found) - 20} more" if len(found) > 20 else ""
+    leaves = "leaf" if len(found) == 1 else "leaves"
+    raise AssertionError(f"{prefix}{len(found)} {leaves} not on {device}: {listed}{more}")
+
+
 def check_maniskill_env(
     env_id: str,
     *,
@@ -116,20 +209,29 @@ def check_maniskill_env(
     num_envs: int = 1,
     **maniskill_kwargs: Any,
 ) -> None:
-    """Checks a ManiSkill task through this library against ManiSkill itself, to the bit.
+    """Checks a ManiSkill task through this library against ManiSkill itself, to the bit, and
+    every output against the env's specs.
 
-    1. :func:`torchrl.envs.utils.check_env_specs` on a ``ManiSkillEnv(env_id, num_envs=...,
-       **maniskill_kwargs)`` of its own (it steps its env).
-    2. A fresh ``ManiSkillEnv`` and raw ManiSkill (``gym.make``; on the CPU sim with
-       ``num_envs > 1``, one raw env per sub-env, sub-env ``i`` seeded ``s + i`` as the library
-       does) take ``steps`` steps with the same random actions; whenever an env is done, all of
-       them are reset with the next seed, on both sides. Every step's observation, reward (as
-       float32), ``terminated``, ``truncated``, ``done`` and tensor infos must be equal.
+    1. A ``ManiSkillEnv(env_id, num_envs=..., **maniskill_kwargs)`` and raw ManiSkill
+       (``gym.make``; on the CPU sim with ``num_envs > 1``, one raw env per sub-env, sub-env
+       ``i`` seeded ``s + i`` as the library does) take ``steps`` steps with the same random
+       actions; whenever an env is done, all of them are reset with the next seed, on both sides.
+       At every reset and step:
+
+       - every leaf of the output is on ``env.device`` (:func:`assert_on_device`);
+       - every observation entry has its spec's dtype and shape and is in it
+         (``observation_spec[key].is_in``), and so do the reward and done entries (reward and
+         done specs); the task's raw reward must hold one value per env;
+       - the observation, reward (as float32), ``terminated``, ``truncated``, ``done`` and tensor
+         infos equal raw ManiSkill's.
+    2. :func:`torchrl.envs.utils.check_env_specs` on a ``ManiSkillEnv`` of its own (it steps its
+       env).
     3. With ``num_envs=1`` (CPU sim): the gym shim's ``CPUGymWrapper`` against ManiSkill's, the
        same way: observations, rewards, flags and infos equal in value, dtype and Python type.
 
     Works for any registered task, your own included: register it (``@register_env``) before
-    calling. Raises an :class:`AssertionError` at the first difference, saying where.
+    calling. Raises an :class:`AssertionError` at the first difference, naming the entry, the
+    step (``step t``) or reset (``reset k with seed s``) and, for a spec violation, the spec.
 
     Args:
         env_id: a registered ManiSkill task.
@@ -148,28 +250,83 @@ def check_maniskill_env(
 
     where = f"check_maniskill_env({env_id!r}, num_envs={num_envs})"
     env = ManiSkillEnv(env_id, num_envs=num_envs, **maniskill_kwargs)
+    raws: list = []
     try:
-        check_env_specs(env, seed=seed)
-    finally:
-        env.close()
-
-    env = ManiSkillEnv(env_id, num_envs=num_envs, **maniskill_kwargs)
-    per_sub_env = isinstance(env.base_env, CPUVectorEnv)
-    on_gpu = env.gpu_sim_enabled
-    gym_kwargs = dict(maniskill_kwargs)
-    if per_sub_env:
-        gym_kwargs["sim_backend"] = "physx_cpu"
-        raws = [gym.make(env_id, num_envs=1, **gym_kwargs) for _ in range(num_envs)]
-    else:
-        raws = [gym.make(env_id, num_envs=num_envs, **gym_kwargs)]
-    try:
+        per_sub_env = isinstance(env.base_env, CPUVectorEnv)
+        on_gpu = env.gpu_sim_enabled
+        gym_kwargs = dict(maniskill_kwargs)
+        if per_sub_env:
+            gym_kwargs["sim_backend"] = "physx_cpu"
+            raws = [gym.make(env_id, num_envs=1, **gym_kwargs) for _ in range(num_envs)]
+        else:
+            raws = [gym.make(env_id, num_envs=num_envs, **gym_kwargs)]
         _compare_with_raw(env, raws, steps, seed, per_sub_env, where)
     finally:
         env.close()
         for raw in raws:
             raw.close()
+
+    env = ManiSkillEnv(env_id, num_envs=num_envs, **maniskill_kwargs)
+    try:
+        check_env_specs(env, seed=seed)
+    finally:
+        env.close()
     if num_envs == 1 and not on_gpu:
         _compare_shim(env_id, steps, seed, maniskill_kwargs, where)
+
+
+def _spec_text(spec: Any) -> str:
+    return f"{type(spec).__name__}(shape={list(spec.shape)}, dtype={spec.dtype}, device={spec.device})"
+
+
+class _SpecCheck:
+    """An env's observation, reward and done specs, leaf by leaf, against its outputs."""
+
+    def __init__(self, env: Any) -> None:
+        self.device = env.device
+        self.batch_dims = len(env.batch_size)
+        self.observations = list(env.observation_spec.items(True, True))
+        self.rewards = list(env.full_reward_spec.items(True, True))
+        self.dones = list(env.full_done_spec.items(True, True))
+
+    def __call__(self, td: TensorDictBase, where: str, *, step: bool) -> None:
+        """Raises an AssertionError naming the first entry of ``td`` (a reset's output, or a
+        step's ``"next"``) off its spec or off the env's device."""
+        assert_on_device(td, self.device, msg=where)
+        for group, specs in (("observation", self.observations), ("reward", self.rewards), ("done", self.dones)):
+            if group == "reward" and not step:
+                continue
+            for key, spec in specs:
+                value = td.get(key, None)
+                if value is None:
+                    if group == "done" and not step:  # a reset may leave its done flags out
+                        continue
+                    raise AssertionError(f"{where}: {key!r} is missing; the {group} spec declares {_spec_text(spec)}")
+                if not isinstance(value, torch.Tensor):
+                    continue
+                if value.dtype != spec.dtype or value.shape != spec.shape:
+                    raise AssertionError(
+                        f"{where}: {key!r} has dtype {value.dtype} and shape {list(value.shape)}, "
+                        f"off its {group} spec {_spec_text(spec)}"
+                    )
+                if not spec.is_in(value):
+                    raise AssertionError(
+                        f"{where}: {key!r} is not in its {group} spec {spec!r} (a value out of its bounds)"
+                    )
+
+    def raw_reward(self, reward: Any, batch: int, where: str) -> None:
+        """Raw ManiSkill's reward must hold as many values per env as the reward spec."""
+        (key, spec), *_ = self.rewards
+        per_env = spec.shape[self.batch_dims :].numel()
+        got = torch.as_tensor(reward)
+        if got.numel() != batch * per_env:
+            raise AssertionError(
+                f"{where}: {key!r}: the task's reward has shape {list(got.shape)} "
+                f"({got.numel() // max(batch, 1)} values per env), but the reward spec "
+                f"{_spec_text(spec)} holds {per_env} per env. A ManiSkill task returns one reward "
+                "per env: compute_dense_reward (and compute_normalized_dense_reward) must return "
+                "shape [num_envs]."
+            )
 
 
 def _seeds(seed: int):
@@ -187,7 +344,9 @@ def _as_tensordict(tree: Mapping, batch: int) -> TensorDict:
 
 
 def _raw_step_tensordict(env: Any, obs: Any, info: Mapping, reward=None, terminated=None, truncated=None) -> TensorDict:
-    """What the library's env must return for one raw ManiSkill step (or reset: no reward)."""
+    """What the library's env must return for one raw ManiSkill step (or reset: no reward), on
+    ``env.device`` (raw ManiSkill may return pictures on CUDA and the rest on the CPU: where the
+    library's outputs are is checked on its own, by :func:`assert_on_device`)."""
     n = env.batch_size.numel() if env.batch_size else 1
     entries: dict = {}
     if isinstance(obs, Mapping):
@@ -201,7 +360,7 @@ def _raw_step_tensordict(env: Any, obs: Any, info: Mapping, reward=None, termina
         entries["terminated"] = terminated.reshape(n, 1)
         entries["truncated"] = truncated.reshape(n, 1)
         entries["done"] = (terminated | truncated).reshape(n, 1)
-    return _as_tensordict(entries, n)
+    return _as_tensordict(entries, n).to(env.device)
 
 
 def _cat(parts: list) -> Any:
@@ -233,28 +392,36 @@ def _raw_step(raws: list, action: Any) -> tuple:
 
 def _compare_with_raw(env: Any, raws: list, steps: int, seed: int, per_sub_env: bool, where: str) -> None:
     seeds = _seeds(seed)
+    check = _SpecCheck(env)
+    n = env.batch_size.numel() if env.batch_size else 1
     g = torch.Generator().manual_seed(seed)
-    s = next(seeds)
-    td = env.reset(seed=s)
-    obs, info = _raw_reset(raws, s, per_sub_env)
-    expected = _raw_step_tensordict(env, obs, info)
-    keys = _leaves(expected)
-    assert_tensordict_equal(td.select(*keys), expected, msg=f"{where}, reset with seed {s}")
+
+    def reset(k: int) -> TensorDictBase:
+        s = next(seeds)
+        at = f"{where}, reset {k} with seed {s}"
+        td = env.reset(seed=s)
+        check(td, at, step=False)
+        obs, info = _raw_reset(raws, s, per_sub_env)
+        expected = _raw_step_tensordict(env, obs, info)
+        assert_tensordict_equal(td.select(*_leaves(expected)), expected, msg=at)
+        return td
+
+    resets = 0
+    td = reset(resets)
     for t in range(steps):
+        at = f"{where}, step {t}"
         td = td.set("action", _random_action(env, g))
         action = td.get("action")
-        td = env.step(td)
         obs, reward, terminated, truncated, info = _raw_step(raws, action.clone())
+        check.raw_reward(reward, n, at)
+        td = env.step(td)
+        check(td["next"], at, step=True)
         expected = _raw_step_tensordict(env, obs, info, reward, terminated, truncated)
-        assert_tensordict_equal(td["next"].select(*_leaves(expected)), expected, msg=f"{where}, step {t}")
+        assert_tensordict_equal(td["next"].select(*_leaves(expected)), expected, msg=at)
         td = td["next"].exclude("reward", "terminated", "truncated", "done")
         if expected["done"].any():
-            s = next(seeds)
-            td = env.reset(seed=s)
-            obs, info = _raw_reset(raws, s, per_sub_env)
-            assert_tensordict_equal(
-                td.select(*keys), _raw_step_tensordict(env, obs, info), msg=f"{where}, reset with seed {s}"
-            )
+            resets += 1
+            td = reset(resets)
 
 
 def _random_action(env: Any, g: torch.Generator) -> Any:
