@@ -14,11 +14,15 @@ from __future__ import annotations
 
 import pytest
 import torch
-from torchrl.envs import TransformedEnv
+from mani_skill.utils.wrappers import RecordEpisode
+from torchrl.envs import Compose, TransformedEnv
 
-from helpers import close_envs, make_gym_env
+from helpers import close_envs, make_gym_env, random_actions
 from maniskill_torchrl import EpisodeMetrics, ManiSkillEnv
+from maniskill_torchrl.data import ManiSkillExperienceReplay
 from maniskill_torchrl.testing import assert_tensordict_equal
+from maniskill_torchrl.transforms import CPUUnbatch, EnvStates
+from toy_env import ToyEnv
 
 STEPS = 12
 
@@ -169,3 +173,93 @@ def test_batched_cpu_env_get_state_equals_each_sub_env():
     finally:
         env.close()
         close_envs(raws)
+
+
+# ----------------------------------------------------------------------------- trajectory files
+@pytest.fixture(scope="module")
+def pick_cube_file(tmp_path_factory):
+    """One seeded PickCube-v1 episode recorded by ManiSkill's RecordEpisode, loaded."""
+    out = tmp_path_factory.mktemp("states")
+    env = make_gym_env("PickCube-v1", obs_mode="state", max_episode_steps=6)
+    rec = RecordEpisode(env, output_dir=str(out), trajectory_name="demo", save_video=False)
+    try:
+        rec.reset(seed=3)
+        for a in random_actions(env.unwrapped.single_action_space, 6, seed=1):
+            rec.step(a.unsqueeze(0))
+    finally:
+        rec.close()
+    return ManiSkillExperienceReplay(out / "demo.h5", 2, root=out / "cache")[:]
+
+
+# A loaded dataset's rows are memory-mapped tensors: torch's multiprocessing pickler cannot send
+# them to the batched CPU env's workers (OSError: Bad file descriptor), which the env then reports
+# as a dead worker. The fix belongs where the states are sent (saved_states / cpu_vector).
+_MEMMAP_ROWS = pytest.mark.xfail(
+    strict=False, reason="memory-mapped env_states rows cannot be sent to the CPU workers yet"
+)
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        pytest.param(dict(batch_size=[]), id="unbatched"),
+        pytest.param({}, id="batch1"),
+        pytest.param(dict(num_envs=2, sim_backend="cpu"), id="num_envs2", marks=_MEMMAP_ROWS),
+    ],
+)
+def test_a_files_env_states_row_resets_to_that_step(pick_cube_file, kwargs):
+    """One step's ``env_states`` row of a RecordEpisode file (``data[i]["env_states"]``, no batch
+    dim) resets every env to that step: the same observation as raw ManiSkill's
+    ``reset_to_env_states`` with that row, bit for bit, and the file's observation at that step
+    up to ManiSkill's state-reset drift (the TCP pose, from forward kinematics, in its last bits)."""
+    data = pick_cube_file
+    raw = make_gym_env("PickCube-v1", obs_mode="state")
+    env = ManiSkillEnv("PickCube-v1", obs_mode="state", **kwargs)
+    try:
+        raw.reset(seed=0)
+        env.reset(seed=0)
+        for i in range(data.shape[0]):
+            row = data[i]["env_states"]  # memory-mapped, as users index a loaded dataset
+            theirs, _ = raw.reset(options={"reset_to_env_states": {"env_states": row.unsqueeze(0).to_dict()}})
+            obs = env.reset_to_state(row)["observation"].reshape(-1, theirs.shape[-1])
+            for j, ours in enumerate(obs):
+                assert torch.equal(ours, theirs[0]), (i, j)
+                torch.testing.assert_close(ours, data[i]["observation"], rtol=0, atol=1e-6, msg=f"step {i}, env {j}")
+    finally:
+        env.close()
+        close_envs([raw])
+
+
+# ----------------------------------------------------------------------------- EnvStates
+def _scripted(actions):
+    it = iter(actions)
+    return lambda td: td.set("action", next(it))
+
+
+def test_env_states_after_cpu_unbatch_are_unbatched():
+    """EnvStates after CPUUnbatch gives what it gives before it: each step's states unbatched
+    (``[T, 13]`` for the cube), in the spec too, and the env's own states after the last step."""
+    rollouts, nows = {}, {}
+    for name, order in (("before", [EnvStates(), CPUUnbatch()]), ("after", [CPUUnbatch(), EnvStates()])):
+        env = TransformedEnv(ManiSkillEnv("PickCube-v1", obs_mode="state"), Compose(*order))
+        try:
+            assert env.observation_spec["env_states"].shape == torch.Size([]), name
+            env.set_seed(4)
+            rollouts[name] = env.rollout(3, policy=_scripted(_actions(env, 3)))
+            nows[name] = env.base_env.get_state()[0]  # the ManiSkill env's own [1] batch, its one row
+            assert env.observation_spec["env_states"].is_in(rollouts[name][0]["env_states"]), name
+        finally:
+            env.close()
+    after = rollouts["after"]
+    assert after["env_states", "actors", "cube"].shape == torch.Size([3, *nows["after"]["actors", "cube"].shape])
+    assert_tensordict_equal(after["next", "env_states"][-1], nows["after"])
+    assert_tensordict_equal(
+        after.select("env_states", ("next", "env_states")),
+        rollouts["before"].select("env_states", ("next", "env_states")),
+    )
+
+
+def test_env_states_needs_a_maniskill_env():
+    env = TransformedEnv(ToyEnv(ends=3), EnvStates())
+    with pytest.raises(TypeError, match=r"EnvStates reads ManiSkill sim states.*ManiSkillEnv"):
+        env.reset()

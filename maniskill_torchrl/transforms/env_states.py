@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import torch
 from tensordict import TensorDictBase
 from torchrl.data import Composite, TensorSpec, Unbounded
 from torchrl.envs import Transform
@@ -15,9 +16,12 @@ class EnvStates(Transform):
     trajectory files keep (:func:`~maniskill_torchrl.data.save_trajectories` writes it, and
     ``env.reset_to_state`` goes back to any step).
 
-    One state read per step: for recording and evaluation, not for fast collection. Put it
-    directly on the :class:`~maniskill_torchrl.ManiSkillWrapper` (first in a ``Compose``), so that
-    it reads the env it wraps.
+    One state read per step: for recording and evaluation, not for fast collection. The states
+    have the batch of the env this transform sits on: placed after
+    :class:`~maniskill_torchrl.transforms.CPUUnbatch` (or on ``ManiSkillEnv(..., batch_size=[])``)
+    they are unbatched (``actors/cube`` of shape ``[13]`` per step), as with it placed before
+    ``CPUUnbatch``. A batch the states cannot take (the parent is not one ManiSkill env's batch or
+    its unbatched view) is refused with an error.
 
     Examples:
         >>> from torchrl.envs import TransformedEnv
@@ -30,7 +34,27 @@ class EnvStates(Transform):
     """
 
     def _states(self) -> TensorDictBase:
-        return self.parent.base_env.get_state()
+        parent = self.parent
+        if parent is None:
+            raise RuntimeError("EnvStates reads the env it is placed on: put it in a TransformedEnv first.")
+        base = parent.base_env
+        if not hasattr(base, "get_state"):
+            raise TypeError(
+                f"EnvStates reads ManiSkill sim states (ManiSkillWrapper.get_state()), but it is placed on "
+                f"{type(base).__name__}: put it on a ManiSkillEnv / ManiSkillWrapper."
+            )
+        states = base.get_state()
+        batch = parent.batch_size
+        if states.batch_size == batch:
+            return states
+        # After CPUUnbatch the transforms before this one took the env dim away: so do the states.
+        if states.batch_size == torch.Size([1]) and batch == torch.Size([]):
+            return states.squeeze(0)
+        raise ValueError(
+            f"EnvStates: the env's states have batch {list(states.batch_size)} but the env it is placed on has "
+            f"batch {list(batch)} (a transform before it changed the batch). Put EnvStates first, right on the "
+            "ManiSkill env."
+        )
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         next_tensordict.set("env_states", self._states())
