@@ -14,7 +14,7 @@ from torchrl.envs import Compose, ExcludeTransform, SerialEnv, TransformedEnv
 from torchrl.envs.utils import check_env_specs, step_mdp
 
 from helpers import bits, make_gym_env, random_actions
-from maniskill_torchrl import CPUUnbatch, EpisodeMetrics, IgnoreTerminations, ManiSkillEnv
+from maniskill_torchrl import CPUUnbatch, EpisodeMetrics, IgnoreTerminations, ManiSkillEnv, ManiSkillWrapper
 from maniskill_torchrl.transforms import EpisodeMetrics as EpisodeMetricsFromTransforms
 from toy_env import ToyEnv, serial_toy_env
 
@@ -254,3 +254,31 @@ def test_maniskill_specs(envs):
     check_env_specs(batched, seed=0)
     td = batched.rollout(3)
     assert td["next", "episode", "episode_len"].tolist() == [[1, 2, 3]]
+
+
+def test_default_summation_follows_the_sim_not_the_device(envs, monkeypatch):
+    """``summation=None``: the CPU sim's numpy sum even where the env's outputs are on a GPU
+    (``device="cuda"`` on a CPU-sim env), the running sum on the GPU sim, the device rule where
+    the base env cannot be asked (a SerialEnv hands unknown attributes on to its sub-envs).
+
+    Stand-ins, so that it runs without CUDA: the CPU-sim env's device label says ``cuda:0``
+    (nothing is allocated there), and ``gpu_sim_enabled`` says True on a CPU env."""
+    _, ms_env = envs["PickCube-v1"]
+    with monkeypatch.context() as patch:
+        patch.setitem(ms_env.__dict__, "_device", torch.device("cuda", 0))
+        env = TransformedEnv(ms_env, Compose(CPUUnbatch(), EpisodeMetrics()))
+        assert env.device == torch.device("cuda", 0) and not env.base_env.gpu_sim_enabled
+        stats = env.transform[-1]._make_stats()
+        assert stats.summation == "numpy" and stats.device == torch.device("cuda", 0)
+    serial = SerialEnv(1, lambda: TransformedEnv(ManiSkillEnv("PickCube-v1", obs_mode="state"), CPUUnbatch()))
+    try:
+        serial.reset(seed=0)  # builds the sub-env before the stand-in (CPUUnbatch refuses a GPU sim)
+        monkeypatch.setattr(ManiSkillWrapper, "gpu_sim_enabled", property(lambda self: True))
+        env = TransformedEnv(ms_env, EpisodeMetrics())
+        assert env.device.type == "cpu"
+        assert env.transform._make_stats().summation == "running"
+        env = TransformedEnv(serial, EpisodeMetrics())
+        assert env.device.type == "cpu" and env.base_env.gpu_sim_enabled == [True]
+        assert env.transform._make_stats().summation == "numpy"
+    finally:
+        serial.close()
