@@ -150,7 +150,12 @@ class ManiSkillExperienceReplay(BaseDatasetExperienceReplay):
             if download != "force" and self._is_downloaded():
                 try:
                     data = TensorDict.load_memmap(self.data_path)
-                except FileNotFoundError:  # removed meanwhile (another process's "force")
+                except (FileNotFoundError, RuntimeError):
+                    if not download:
+                        raise
+                    # Removed while read (another process's "force" or stale clean-up; tensordict
+                    # reports a missing .memmap as a RuntimeError): built again below. A copy
+                    # that is really broken fails again when the built one is read.
                     data = None
             if data is None:
                 if not download:
