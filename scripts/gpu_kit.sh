@@ -256,6 +256,11 @@ for part in "$KIT.tmp"/kit*; do
     mv "$part" "$KIT/$name"
 done
 rm -rf "$KIT.tmp"
+# Every part names all parts and their wheel lists' hashes (what gpu_check.sh stamps an installed
+# part with): the check then knows whether a part installed by an earlier call is missing.
+for part in "$KIT"/kit*; do
+    for p in "$KIT"/kit*; do echo "$(basename "$p") $(ls "$p"/wheels | sha256sum | cut -c1-16)"; done >"$part/PARTS.txt"
+done
 
 # --------------------------------------------------------- PhysX GPU library
 # SAPIEN downloads libPhysXGpu_64.so from GitHub on the GPU sim's first use; the accelerator
