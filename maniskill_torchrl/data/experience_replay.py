@@ -200,7 +200,7 @@ class ManiSkillExperienceReplay(BaseDatasetExperienceReplay):
 
     @property
     def data_path(self) -> Path:
-        """This dataset's copy: the file's current version, these episodes, this layout."""
+        """The folder of this dataset's copy (the file's current version, these episodes, this layout)."""
         return self.data_path_root / f"{self._version}-{self._key}"
 
     def _is_downloaded(self) -> bool:
