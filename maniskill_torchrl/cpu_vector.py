@@ -118,6 +118,7 @@ class CPUVectorEnv:
         self._vec: AsyncVectorEnv | None = None
         self._local = None
         self._closed = False
+        self._closed_why = ""
         makers = [MakeWorker(env_id, maniskill_kwargs, index=i) for i in range(num_envs)]
         try:
             if num_envs > self._first:
@@ -167,12 +168,17 @@ class CPUVectorEnv:
         ``collect(vec)``; returns (``here``'s result, ``collect``'s). ``send=None``: no worker
         takes part; ``here=None``: sub-env 0 does not. The workers' results are collected even
         when sub-env 0 raises, so that no call is left pending; a dead worker is reported."""
+        if self._closed:
+            raise RuntimeError(
+                f"{self!r} is closed" + (f" ({self._closed_why})" if self._closed_why else "") + f": it cannot "
+                f"{call}() any more. Make a new env."
+            )
         vec = self._vec if send is not None else None
         if vec is not None:
             try:
                 send(vec)
             except (EOFError, OSError) as err:
-                raise self._worker_died(call) from err
+                raise self._worker_died(call, err) from err
         mine = theirs = None
         try:
             if here is not None and self._local is not None:
@@ -182,7 +188,13 @@ class CPUVectorEnv:
                 try:
                     theirs = collect(vec)
                 except (EOFError, OSError) as err:
-                    raise self._worker_died(call) from err
+                    raise self._worker_died(call, err) from err
+                except Exception as err:
+                    # gymnasium re-raises a worker's exception after shutting that worker down:
+                    # the env cannot go on with a sub-env missing.
+                    if any(pipe is None for pipe in vec.parent_pipes):
+                        raise self._worker_died(call, err) from err
+                    raise
         return mine, theirs
 
     def step(
@@ -301,24 +313,36 @@ class CPUVectorEnv:
         """Every sub-env's ``render()``, concatenated: ``[N, H, W, 3]`` uint8 for ``rgb_array``."""
         return torch.cat([torch.as_tensor(f) for f in self.call("render")])
 
-    def _worker_died(self, call: str) -> RuntimeError:
-        """Tears the sub-envs down (a dead worker would leave the others waiting) and says which died."""
+    def _worker_died(self, call: str, err: BaseException) -> RuntimeError:
+        """Tears the sub-envs down (a dead or failed worker would leave the others waiting) and
+        says what happened: which worker died, raised, or that sending to them failed."""
         vec = self._vec
         dead = [i + self._first for i, p in enumerate(vec.processes) if not p.is_alive()]
+        failed = [i + self._first for i, pipe in enumerate(vec.parent_pipes) if pipe is None]
+        if failed:
+            what = f"worker(s) of sub-env(s) {failed} raised {type(err).__name__}: {err}"
+            where = "the worker's traceback is printed above"
+        elif dead:
+            what = f"worker(s) of sub-env(s) {dead} died"
+            where = "look for the worker's own error above (a crash in the simulator, or out of memory)"
+        else:
+            what = f"sending to the workers failed ({type(err).__name__}: {err})"
+            where = "what was sent could not be pickled to the workers"
         self._closed = vec.closed = True
+        self._closed_why = f"{what} during {call}()"
         for process in vec.processes:
             if process.is_alive():
                 process.terminate()
         for pipe in vec.parent_pipes:
-            pipe.close()
+            if pipe is not None:
+                pipe.close()
         for process in vec.processes:
             process.join(5)
         if self._local is not None:
             self._local.close()
         return RuntimeError(
-            f"CPUVectorEnv worker(s) of sub-env(s) {dead} of {self.spec.id} died during {call}(); the env is "
-            "closed. Look for the worker's own error above (a crash in the simulator, or out of memory) and "
-            "make a new env."
+            f"CPUVectorEnv({self.spec.id}): {what} during {call}(); the env is closed ({where}). "
+            "Close it and make a new env."
         )
 
     def close(self) -> None:

@@ -127,7 +127,8 @@ class SavedStates:
                 )
             if value.dtype != ref.dtype and not (value.is_floating_point() and ref.is_floating_point()):
                 raise ValueError(f"env_states{_path(key)} has dtype {value.dtype}; this env's is {ref.dtype}.")
-            out[key] = value.to(ref.dtype)
+            # A plain copy: a dataset's rows are memory-mapped tensors, which cannot be sent to CPU workers.
+            out[key] = value.as_subclass(torch.Tensor).to(ref.dtype, copy=True)
         rows = set(batches.values())
         if len(rows) > 1:
             raise ValueError(f"env_states' entries have different batches: {batches}.")

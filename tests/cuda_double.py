@@ -24,23 +24,19 @@ Importing this module registers the device, which torch then takes for the machi
 accelerator: so it is only imported in processes that stand for a CUDA machine.
 ``tests/cuda_site`` holds a ``sitecustomize.py`` that calls :func:`install` in every Python
 process started with that folder on ``PYTHONPATH`` and ``MANISKILL_TORCHRL_CUDA_DOUBLE=1``
-(:func:`subprocess_env`): the test's subprocess and the CPU workers of a batched env or of a
+(``tests/test_cuda_machine.py`` starts one so): the test's subprocess and the CPU workers of a batched env or of a
 ``ParallelEnv``, started by forkserver or spawn. ``tests/test_cuda_machine.py`` runs
 ``tests/cuda_machine_cases.py`` with pytest in such a subprocess.
 """
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
 from typing import Any
 
 import torch
 from torch.utils._pytree import tree_map
 
 NAME = "fakecuda"
-SITE = Path(__file__).resolve().parent / "cuda_site"
-ENV_VAR = "MANISKILL_TORCHRL_CUDA_DOUBLE"
 
 # Ops that take CPU tensors beside device tensors on CUDA too: copies across devices, CPU indices.
 _MIXED_OK = {"copy_", "index", "index_put", "index_put_", "_index_put_impl_"}
@@ -159,6 +155,11 @@ class _DeviceModule:
         pass
 
 
+def _copy_from(src: torch.Tensor, dst: DeviceTensor, non_blocking: bool = False) -> torch.Tensor:
+    dst.inner.copy_(src.inner if isinstance(src, DeviceTensor) else src)
+    return dst
+
+
 def _register_device() -> Any:
     """Registers ``fakecuda`` (once per process: importing this module does it)."""
     from torch.utils.backend_registration import _setup_privateuseone_for_python_backend
@@ -168,6 +169,7 @@ def _register_device() -> Any:
     lib = torch.library.Library("aten", "IMPL")
     lib.impl("empty.memory_format", _empty, "PrivateUse1")
     lib.impl("empty_strided", _empty_strided, "PrivateUse1")
+    lib.impl("_copy_from", _copy_from, "PrivateUse1")  # torch.tensor(data, device=...)
     return lib
 
 
@@ -221,11 +223,3 @@ def install() -> None:
     """The double, for good, in this process (``sitecustomize``)."""
     for obj, attr, new in _patches():
         setattr(obj, attr, new)
-
-
-def subprocess_env() -> dict[str, str]:
-    """The environment of a subprocess (and of its workers) that runs under the double."""
-    env = dict(os.environ)
-    env[ENV_VAR] = "1"
-    env["PYTHONPATH"] = os.pathsep.join([str(SITE), str(SITE.parent), *filter(None, [env.get("PYTHONPATH")])])
-    return env

@@ -408,7 +408,9 @@ def test_dead_worker_raises_instead_of_hanging(pick):
     worker = env._env._vec.processes[-1]  # sub-env N - 1's (sub-env 0 runs in this process)
     os.kill(worker.pid, signal.SIGKILL)
     worker.join(5)
-    with pytest.raises(RuntimeError, match=rf"worker\(s\) of sub-env\(s\) \[{N - 1}\] of PickCube-v1 died during step"):
+    with pytest.raises(
+        RuntimeError, match=rf"CPUVectorEnv\(PickCube-v1\): worker\(s\) of sub-env\(s\) \[{N - 1}\] died during step"
+    ):
         env.rand_step(td)
     assert all(not p.is_alive() for p in env._env._vec.processes)
     env.close()  # closing again is harmless

@@ -191,20 +191,13 @@ def pick_cube_file(tmp_path_factory):
     return ManiSkillExperienceReplay(out / "demo.h5", 2, root=out / "cache")[:]
 
 
-# A loaded dataset's rows are memory-mapped tensors: torch's multiprocessing pickler cannot send
-# them to the batched CPU env's workers (OSError: Bad file descriptor), which the env then reports
-# as a dead worker. The fix belongs where the states are sent (saved_states / cpu_vector).
-_MEMMAP_ROWS = pytest.mark.xfail(
-    strict=False, reason="memory-mapped env_states rows cannot be sent to the CPU workers yet"
-)
-
-
 @pytest.mark.parametrize(
     "kwargs",
     [
         pytest.param(dict(batch_size=[]), id="unbatched"),
         pytest.param({}, id="batch1"),
-        pytest.param(dict(num_envs=2, sim_backend="cpu"), id="num_envs2", marks=_MEMMAP_ROWS),
+        # a loaded dataset's rows are memory-mapped: sent to the CPU workers as plain copies
+        pytest.param(dict(num_envs=2, sim_backend="cpu"), id="num_envs2"),
     ],
 )
 def test_a_files_env_states_row_resets_to_that_step(pick_cube_file, kwargs):
