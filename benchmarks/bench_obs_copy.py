@@ -1,8 +1,8 @@
 """What copying ManiSkill's observations costs, where ManiSkillWrapper copies them.
 
 On the GPU sim (and the CPU sim rendering with ``sapien_cuda``) ManiSkill hands out buffers that
-its next step or render overwrites, so the wrapper copies every observation entry it returns
-(``maniskill_layout._LEAVES``, the ``_clone`` leaf). This times that copy on the CPU, with the
+its next step or render overwrites, so the wrapper copies every observation entry it returns, once,
+onto ``env.device`` (``maniskill_layout._leaf``). This times that copy on the CPU, with the
 wrapper's own code, on PickCube-v1's real ``obs_mode="rgb"`` observation at 128 x 128 (agent and
 extra state, camera parameters, ``sensor_data/base_camera/rgb`` uint8), tiled to the batch:
 
@@ -13,13 +13,22 @@ Beside them, one CPU-sim ``env.step`` of that task at batch 1 (128 px rgb, rende
 lavapipe) gives the scale. Contenders interleaved (``common.interleave``), this process's CPU time,
 medians over rounds.
 
-Run: ``python benchmarks/bench_obs_copy.py [--batches 2 64] [--rounds 31]``.
+Then, with ``--transfers``, the device rule counted on a stand-in CUDA machine (the test double of
+``tests/cuda_double.py``: ManiSkill's CPU sim with ``sapien_cuda`` pictures on a second torch
+device): the copies between host and device that one ``env.step`` makes, raw ManiSkill's own
+(the double's render upload included) and the library's on top, for ``env.device`` the CPU
+(pictures moved to the host) and the device (pictures kept there, states uploaded). Counts and
+bytes, not seconds: the double's copies are CPU copies.
+
+Run: ``python benchmarks/bench_obs_copy.py [--batches 2 64] [--rounds 31] [--transfers]``.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import os
+import subprocess
 import sys
 import warnings
 from pathlib import Path
@@ -35,7 +44,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--size", type=int, default=128, help="camera width and height")
     parser.add_argument("--rounds", type=int, default=31)
     parser.add_argument("--calls", type=int, default=20, help="copies per round")
+    parser.add_argument("--transfers", action="store_true", help="also count the device rule's copies")
+    parser.add_argument("--steps", type=int, default=20, help="steps counted per setting (--transfers)")
+    parser.add_argument("--_under-double", dest="under_double", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if args.under_double:
+        return count_transfers(args.size, args.steps)
 
     warnings.filterwarnings("ignore")
     import gymnasium as gym
@@ -43,11 +57,12 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     from maniskill_torchrl._private import new_tensordict
-    from maniskill_torchrl.maniskill_layout import _clone, _mapped
+    from maniskill_torchrl.maniskill_layout import _leaf, _mapped
 
     logging.getLogger("mani_skill").setLevel(logging.ERROR)
     torch.set_num_threads(1)
     print(machine_line())
+    copy = _leaf(torch.device("cpu"), False, True)
     cam = dict(width=args.size, height=args.size)
     env = gym.make("PickCube-v1", num_envs=1, obs_mode="rgb", sensor_configs=cam)
     obs, _ = env.reset(seed=0)
@@ -75,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
 
         def copied(o=batch_obs, b=b) -> int:
             for _ in range(args.calls):
-                new_tensordict(_mapped(o, _clone), batch_size=[b])
+                new_tensordict(_mapped(o, copy), batch_size=[b])
             return args.calls
 
         contenders = [Contender("as is", as_is), Contender("copied", copied)]
@@ -84,6 +99,53 @@ def main(argv: list[str] | None = None) -> int:
         results = interleave(contenders, rounds=args.rounds, warmup=2, clock="cpu")
         print(report(results, baseline="as is", unit="call", difference=True))
     env.close()
+    if args.transfers:
+        root = Path(__file__).resolve().parents[1]
+        tests = root / "tests"
+        paths = [tests / "cuda_site", tests, root, *filter(None, [os.environ.get("PYTHONPATH")])]
+        env_vars = dict(os.environ, MANISKILL_TORCHRL_CUDA_DOUBLE="1", PYTHONPATH=os.pathsep.join(map(str, paths)))
+        cmd = [sys.executable, __file__, "--_under-double", "--size", str(args.size), "--steps", str(args.steps)]
+        return subprocess.run(cmd, env=env_vars).returncode
+    return 0
+
+
+def count_transfers(size: int, steps: int) -> int:
+    """Under the CUDA double: host/device copies per ``env.step``, raw ManiSkill and the library."""
+    warnings.filterwarnings("ignore")
+    import gymnasium as gym
+    import torch
+
+    import cuda_double
+    from maniskill_torchrl import ManiSkillEnv
+
+    cam = dict(obs_mode="rgb", sensor_configs=dict(width=size, height=size), sim_backend="cpu")
+    kinds = ("d2h", "h2d", "d2d")
+
+    def per_step(step) -> dict:
+        before = dict(cuda_double.TRANSFERS)
+        for _ in range(steps):
+            step()
+        after = cuda_double.TRANSFERS
+        return {k: (after[k] - before.get(k, 0)) / steps for k in [*kinds, *(f"{k}_bytes" for k in kinds)]}
+
+    rows = []
+    raw = gym.make("PickCube-v1", num_envs=1, **cam)
+    raw.reset(seed=0)
+    action = torch.zeros(raw.action_space.shape)
+    rows.append(("raw ManiSkill step (the double's render upload)", per_step(lambda: raw.step(action))))
+    raw.close()
+    for device in ("cpu", cuda_double.DEVICE):
+        env = ManiSkillEnv("PickCube-v1", device=device, **cam)
+        td = env.reset(seed=0)
+        td.set("action", torch.zeros(env.action_spec.shape, device=env.device))
+        rows.append((f"ManiSkillEnv(device={str(device)!r}).step", per_step(lambda e=env, t=td: e.step(t))))
+        env.close()
+    print(f"\nPickCube-v1 rgb {size} px, batch 1, CPU sim with sapien_cuda pictures (the CUDA double), per step:")
+    print("| what | device->host | host->device | on the device |")
+    print("|---|---|---|---|")
+    for name, c in rows:
+        cells = [f"{c[k]:.0f} ({c[k + '_bytes'] / 1024:.1f} KiB)" for k in kinds]
+        print(f"| {name} | " + " | ".join(cells) + " |")
     return 0
 
 

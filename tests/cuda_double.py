@@ -31,12 +31,23 @@ process started with that folder on ``PYTHONPATH`` and ``MANISKILL_TORCHRL_CUDA_
 
 from __future__ import annotations
 
+from collections import Counter
 from typing import Any
 
 import torch
 from torch.utils._pytree import tree_map
 
 NAME = "fakecuda"
+
+#: Copies between the host and the device, and on the device, since the process started:
+#: ``{"d2h": n, "d2h_bytes": b, "h2d": ..., "d2d": ...}`` (``benchmarks/bench_obs_copy.py`` reads it).
+TRANSFERS: Counter = Counter()
+
+
+def _count(kind: str, t: torch.Tensor) -> None:
+    TRANSFERS[kind] += 1
+    TRANSFERS[f"{kind}_bytes"] += t.numel() * t.element_size()
+
 
 # Ops that take CPU tensors beside device tensors on CUDA too: copies across devices, CPU indices.
 _MIXED_OK = {"copy_", "index", "index_put", "index_put_", "_index_put_impl_"}
@@ -86,6 +97,8 @@ class DeviceTensor(torch.Tensor):
             if to_host and name == "to":
                 kwargs["copy"] = True  # out of device memory: always a copy, as from CUDA
             out = func(src, *args[1:], **kwargs)
+            if out is not src:
+                _count("d2h" if to_host else "d2d" if isinstance(args[0], DeviceTensor) else "h2d", out)
             if to_host:
                 return out
             with torch.inference_mode(False):
@@ -100,6 +113,10 @@ class DeviceTensor(torch.Tensor):
             return x
 
         args, kwargs = tree_map(unwrap, args), tree_map(unwrap, kwargs)
+        if name == "copy_" and mixed:
+            _count("h2d", args[0])
+        elif name == "clone":
+            _count("d2d", args[0])
         if mixed and name not in _MIXED_OK:
             raise RuntimeError(
                 f"Expected all tensors to be on the same device, but found at least two devices, {DEVICE} and "
@@ -157,6 +174,7 @@ class _DeviceModule:
 
 def _copy_from(src: torch.Tensor, dst: DeviceTensor, non_blocking: bool = False) -> torch.Tensor:
     dst.inner.copy_(src.inner if isinstance(src, DeviceTensor) else src)
+    _count("d2d" if isinstance(src, DeviceTensor) else "h2d", dst.inner)
     return dst
 
 

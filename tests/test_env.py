@@ -410,11 +410,12 @@ def test_from_pixels_equals_maniskill_render(envs):
     actions = random_actions(raw.unwrapped.single_action_space, 2, seed=4)
     raw.reset(seed=21)
     td = env.reset(seed=21)
-    assert_same(td["pixels"], raw.render(), "reset pixels")
+    # raw references on env.device: on a CUDA machine ManiSkill renders the CPU sim on the GPU
+    assert_same(td["pixels"], raw.render().to(env.device), "reset pixels")
     for t, a in enumerate(actions):
         raw.step(batched(a))
         td = env.step(td.set("action", as_td_action(a)))
-        assert_same(td["next", "pixels"], raw.render(), f"step {t} pixels")
+        assert_same(td["next", "pixels"], raw.render().to(env.device), f"step {t} pixels")
         td = step_mdp(td)
     # render() is ManiSkill's render: a batched uint8 frame, the same as the last "pixels".
     frame = env.render()
@@ -651,8 +652,9 @@ def test_num_envs_on_cpu_sim(kwargs):
         ManiSkillEnv("PickCube-v1", num_envs=0, **kwargs)
 
 
-def test_device_mismatch(spare_gym_env):
-    with pytest.raises(ValueError, match="device"):
+def test_device_cuda_without_cuda_is_refused(spare_gym_env, monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)  # also on a machine with CUDA
+    with pytest.raises(ValueError, match=r"device='cuda:0', but torch.cuda.is_available\(\) is False"):
         ManiSkillWrapper(spare_gym_env, device="cuda")
 
 

@@ -103,6 +103,7 @@ def _assert_matches_raw(td: TensorDictBase, raw: dict, what: str) -> None:
     assert td_keys - flags == set(raw), what  # every entry is checked, and nothing is missing
     for key, want in raw.items():
         got = td[key]
+        want = want.to(got.device)  # on a CUDA machine, raw ManiSkill's pictures are on the GPU
         assert got.dtype == want.dtype and got.shape == want.shape, (what, key)
         assert torch.equal(got, want), (what, key)
 
