@@ -63,14 +63,13 @@ class NumpyOrderSums:
         self.batch_size = torch.Size(batch_size)
         self.native = native
         n = self.batch_size.numel()
-        self._rows = np.arange(n)
         # Per env and position in the episode: the reward, the return add() gave, and whether
         # that return was numpy's sum of the episode's rewards (False: a running sum).
         self._hist = np.zeros((n, 256), np.float32)
         self._sums = np.zeros((n, 256), np.float32)
         self._exact = np.zeros((n, 256), bool)
         # The last position written per env: the positions after it are an abandoned branch.
-        self._top = np.full(n, -1, np.int64)
+        self._top = [-1] * n
 
     def _fit(self, last: int, dtype: np.dtype) -> None:
         """Room for position ``last`` in rewards of ``dtype``."""
@@ -101,26 +100,21 @@ class NumpyOrderSums:
         if not self.native and (not on_host or rewards.dtype != torch.float32):
             rewards = rewards.to("cpu", torch.float32)
         rewards = rewards.cpu().numpy()
-        positions = position.detach().reshape(-1).cpu().numpy().astype(np.int64)  # a copy: kept as _top
-        self._fit(int(positions.max(initial=0)), rewards.dtype)
-        rows, hist, sums = self._rows, self._hist, self._sums
-        before = positions - 1
-        if previous is None:
-            follows = np.ones(len(rows), bool)
-        else:
-            prev = previous.detach().reshape(-1).cpu().numpy()
-            at = np.maximum(before, 0)
-            held = (before <= self._top) & self._exact[rows, at] & (sums[rows, at] == prev)
-            follows = (before < 0) | held
-        hist[rows, positions] = rewards
-        totals = np.empty(len(rows), sums.dtype)
-        for i in np.flatnonzero(follows).tolist():
-            totals[i] = np.add.reduce(hist[i, : positions[i] + 1])
-        if not follows.all():
-            lost = ~follows
-            totals[lost] = (prev[lost] + rewards[lost]).astype(sums.dtype)
-        sums[rows, positions] = totals
-        self._exact[rows, positions] = follows
-        self._top = positions
+        positions = position.reshape(-1).tolist()
+        held = None if previous is None else previous.detach().reshape(-1).tolist()
+        self._fit(max(positions, default=0), rewards.dtype)
+        hist, sums, exact, top = self._hist, self._sums, self._exact, self._top
+        scalar = sums.dtype.type
+        totals = np.empty(len(positions), sums.dtype)
+        # One env at a time: each sums its own episode's length.
+        for i, k in enumerate(positions):
+            hist[i, k] = rewards[i]
+            # Continues the history: a first step, or the return given at k - 1 on the branch
+            # last written (nothing after top[i] is). Else a running sum from the caller's return.
+            follows = k == 0 or held is None or (k <= top[i] + 1 and exact[i, k - 1] and sums[i, k - 1] == held[i])
+            total = np.add.reduce(hist[i, : k + 1]) if follows else scalar(held[i]) + rewards[i]
+            totals[i] = sums[i, k] = total
+            exact[i, k] = follows
+            top[i] = k
         out = torch.from_numpy(totals).view(self.batch_size)
         return out if on_host else out.to(reward.device)
