@@ -1,6 +1,6 @@
 # maniskill_torchrl developer targets. Run `make` for help.
 .DEFAULT_GOAL := help
-.PHONY: help setup test test-registry test-nightly lint docs demo bench clean gpu-kit
+.PHONY: help setup test test-registry test-nightly lint docs demo bench clean gpu-kit gpu-check
 
 # MANISKILL=release (default: mani-skill 3.0.x, in .venv) or nightly (mani-skill-nightly, in .venv-nightly).
 MANISKILL   ?= release
@@ -24,6 +24,8 @@ help:
 	@echo "  make demo    run the demo CLI (DEMO_ARGS=... passed to 'maniskill-torchrl demo')"
 	@echo "  make bench   run benchmarks/run_all.py"
 	@echo "  make gpu-kit fill .gpu/ with the wheels and .debs for the GPU checks (benchmarks/README.md)"
+	@echo "  make gpu-check  dry run here of scripts/gpu_check.sh, the accelerator machine's check: no kit,"
+	@echo "               .venv as it is, 2 suite workers, a short sweep (GPU_CHECK_LOCAL=1; outputs/gpu-check)"
 	@echo "  make clean   remove .venv, .venv-nightly and outputs/"
 
 setup:
@@ -57,3 +59,6 @@ clean:
 
 gpu-kit:
 	@bash scripts/gpu_kit.sh
+
+gpu-check: setup
+	GPU_CHECK_LOCAL=1 bash scripts/gpu_check.sh outputs/gpu-check

@@ -237,7 +237,8 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     start = time.perf_counter()  # wall time from here: env start-up, training and evaluation
     device = torch.device(args.device)  # cuda with its index (sim_device.check_arguments)
     torch.manual_seed(args.seed)
-    if device.type == "cpu":
+    if device.type == "cpu" or args.sim_backend == "cpu":
+        # The CPU sim's processes need the cores: this one (sub-env 0's too) keeps to --threads.
         torch.set_num_threads(args.threads)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -434,7 +435,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     p.add_argument("--critic-coeff", type=float, default=0.5)
     p.add_argument("--max-grad-norm", type=float, default=0.5)
-    p.add_argument("--threads", type=int, default=1, help="torch threads on the CPU")
+    p.add_argument("--threads", type=int, default=1, help="torch threads of this process on the CPU sim or learner")
     p.add_argument(
         "--eval-every",
         type=int,

@@ -186,7 +186,8 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     start = time.perf_counter()
     device = torch.device(args.device)
     torch.manual_seed(args.seed)
-    if device.type == "cpu":
+    if device.type == "cpu" or args.sim_backend == "cpu":
+        # The CPU sim's processes need the cores: this one (sub-env 0's too) keeps to --threads.
         torch.set_num_threads(args.threads)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -295,7 +296,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--lr", type=float, default=3e-4)
     p.add_argument("--gamma", type=float, default=0.8)
     p.add_argument("--tau", type=float, default=0.005)
-    p.add_argument("--threads", type=int, default=1, help="torch threads on the CPU")
+    p.add_argument("--threads", type=int, default=1, help="torch threads of this process on the CPU sim or learner")
     p.add_argument("--eval-every", type=int, default=20_000, help="frames between evaluations")
     p.add_argument("--eval-episodes", type=int, default=50)
     p.add_argument(

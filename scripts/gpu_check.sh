@@ -53,7 +53,9 @@
 # Knobs: GPU_CHECK_STAGES ("suite gpu demo smoke sweep"), GPU_CHECK_DEADLINE_S (560),
 #        GPU_CHECK_SITE (/tmp/maniskill_torchrl-gpu-site), PYTHON (python3),
 #        GPU_CHECK_SUITE_S, GPU_CHECK_SUITE_WORKERS (cores - 2), GPU_CHECK_SUITE_ARGS (extra pytest
-#        arguments), GPU_CHECK_PER_TEST_S (240, with pytest-timeout), GPU_CHECK_TEST_S,
+#        arguments), GPU_CHECK_PER_TEST_S (300) and GPU_CHECK_GPU_PER_TEST_S (150, tests/gpu): per test,
+#        with pytest-timeout,
+#        GPU_CHECK_TEST_S,
 #        GPU_CHECK_PYTEST_ARGS (tests/gpu), GPU_CHECK_DEMO_S, GPU_CHECK_SMOKE_S, GPU_CHECK_SWEEP_S,
 #        GPU_CHECK_SWEEP_N ("1 4 8 15"), GPU_CHECK_SWEEP_SECONDS (3), GPU_CHECK_BENCH_S,
 #        GPU_CHECK_BENCH_ARGS, GPU_CHECK_INSTALL (1; 0: no kit, the current Python as it is).
@@ -85,7 +87,7 @@ OUT_DIR="$(cd "$OUT_DIR" && pwd)"
 PY="${PYTHON:-python3}"
 SITE="${GPU_CHECK_SITE:-/tmp/maniskill_torchrl-gpu-site}"
 INSTALL="${GPU_CHECK_INSTALL:-1}"
-STAGES="${GPU_CHECK_STAGES:-suite gpu demo smoke sweep}"
+STAGES="${GPU_CHECK_STAGES-suite gpu demo smoke sweep}"  # set but empty: set-up only
 DEADLINE_S="${GPU_CHECK_DEADLINE_S:-560}"
 WORK="$(mktemp -d /tmp/maniskill_torchrl-gpu-check.XXXXXX)"  # the demo's and smoke runs' outputs
 export PYTHONUNBUFFERED=1 RL_WARNINGS=0
@@ -398,7 +400,7 @@ for stage in $STAGES; do
             log "pytest-xdist is not installed: the suite runs in one process"
         fi
         # pytest-timeout (there on the machine) stops one hung test and keeps the junit report.
-        "$PY" -c "import pytest_timeout" 2>/dev/null && per_test=(--timeout "${GPU_CHECK_PER_TEST_S:-240}")
+        "$PY" -c "import pytest_timeout" 2>/dev/null && per_test=(--timeout "${GPU_CHECK_PER_TEST_S:-300}")
         # shellcheck disable=SC2086
         run_stage suite "${GPU_CHECK_SUITE_S:-330}" "$PY" -m pytest tests --ignore=tests/registry \
             --ignore=tests/docs --ignore=tests/gpu -q -rfEs --durations=15 -p no:cacheprovider "${xdist[@]}" \
@@ -407,7 +409,7 @@ for stage in $STAGES; do
     gpu)
         if ((physx_ok)); then
             per_test=()
-            "$PY" -c "import pytest_timeout" 2>/dev/null && per_test=(--timeout "${GPU_CHECK_PER_TEST_S:-150}")
+            "$PY" -c "import pytest_timeout" 2>/dev/null && per_test=(--timeout "${GPU_CHECK_GPU_PER_TEST_S:-150}")
             # shellcheck disable=SC2086
             run_stage gpu "${GPU_CHECK_TEST_S:-240}" "$PY" -m pytest tests/gpu -q -rA -p no:cacheprovider \
                 "${per_test[@]}" -o junit_family=xunit1 --junitxml="$OUT_DIR/gpu.xml" ${GPU_CHECK_PYTEST_ARGS:-}
@@ -516,7 +518,7 @@ def sweep(path):
             fps.setdefault(spec, {})[n] = round(1.0 / r["median_s"], 1)
         elif r.get("note") or r.get("failures"):
             ok.setdefault(spec, {})[n] = r.get("note") or f"{r.get('failures')} failures"
-    out = {"settings": d.get("settings"), "frames_per_s": fps, "wall_s": round(d.get("wall_s", 0), 1)}
+    out = {"settings": d.get("settings"), "frames_per_s": fps, "benchmark_s": round(d.get("wall_s", 0), 1)}
     if ok:
         out["not_measured"] = ok
     gym, batched = fps.get("gym", {}), fps.get("batched", {})
@@ -551,6 +553,10 @@ if "smoke" in stages:
     stages["smoke"]["runs"] = runs
 if "sweep" in stages:
     stages["sweep"].update(sweep(os.path.join(out_dir, "sweep.json")))
+    # bench_collection.py exits 0 when a run fails: a sweep with a cell left unmeasured failed
+    if stages["sweep"]["status"] == "passed" and (stages["sweep"].get("not_measured") or not stages["sweep"].get("frames_per_s")):
+        stages["sweep"]["status"] = "failed"
+        stages["sweep"]["note"] = "runs without a result (not_measured)"
 if "bench" in stages and stages["bench"]["status"] != "skipped":
     try:
         b = json.load(open(os.path.join(out_dir, "bench.json")))
@@ -608,5 +614,7 @@ log "done in $(($(date +%s) - T0))s; failed stages: ${failed:-none}; files in $O
 [[ -z "$failed" ]]
 }
 
-main 2>&1 | tee -a "$OUT_DIR/gpu_check.log"
+# A fresh log and no stale results (a local OUT_DIR is reused: the summary must read this run's files).
+rm -f "$OUT_DIR"/{summary.json,suite.xml,gpu.xml,sweep.json,bench.json,gpu_check.log}
+main 2>&1 | tee "$OUT_DIR/gpu_check.log"
 exit "${PIPESTATUS[0]}"
