@@ -84,6 +84,9 @@ class DeviceTensor(torch.Tensor):
 
     __array__ = numpy
 
+    def tolist(self) -> Any:  # as from CUDA: a copy to the host, read
+        return self.inner.tolist()
+
     @classmethod
     def __torch_dispatch__(cls, func, types, args=(), kwargs=None):
         kwargs = kwargs or {}

@@ -29,7 +29,8 @@ def subprocess_env() -> dict[str, str]:
 
 def test_library_on_a_cuda_machine():
     result = subprocess.run(
-        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-W", "ignore::UserWarning", str(CASES)],
+        [sys.executable, "-m", "pytest", "-q", "--tb=short", "--show-capture=no"]
+        + ["-p", "no:cacheprovider", "-p", "no:warnings", str(CASES)],
         cwd=ROOT,
         env=subprocess_env(),
         capture_output=True,
