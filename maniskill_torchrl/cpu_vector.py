@@ -33,6 +33,7 @@ from gymnasium.vector import AsyncVectorEnv, AutoresetMode
 from gymnasium.vector.utils import create_empty_array
 
 from maniskill_torchrl._maniskill import check_assets
+from maniskill_torchrl.cpu_failures import describe_failure, stop_workers
 from maniskill_torchrl.cpu_worker import (
     INFO,
     OBS,
@@ -314,30 +315,11 @@ class CPUVectorEnv:
         return torch.cat([torch.as_tensor(f) for f in self.call("render")])
 
     def _worker_died(self, call: str, err: BaseException) -> RuntimeError:
-        """Tears the sub-envs down (a dead or failed worker would leave the others waiting) and
-        says what happened: which worker died, raised, or that sending to them failed."""
-        vec = self._vec
-        dead = [i + self._first for i, p in enumerate(vec.processes) if not p.is_alive()]
-        failed = [i + self._first for i, pipe in enumerate(vec.parent_pipes) if pipe is None]
-        if failed:
-            what = f"worker(s) of sub-env(s) {failed} raised {type(err).__name__}: {err}"
-            where = "the worker's traceback is printed above"
-        elif dead:
-            what = f"worker(s) of sub-env(s) {dead} died"
-            where = "look for the worker's own error above (a crash in the simulator, or out of memory)"
-        else:
-            what = f"sending to the workers failed ({type(err).__name__}: {err})"
-            where = "what was sent could not be pickled to the workers"
-        self._closed = vec.closed = True
+        """Stops the sub-envs (the others would wait for the one that failed) and says what happened."""
+        what, where = describe_failure(self._vec, self._first, err)
+        self._closed = True
         self._closed_why = f"{what} during {call}()"
-        for process in vec.processes:
-            if process.is_alive():
-                process.terminate()
-        for pipe in vec.parent_pipes:
-            if pipe is not None:
-                pipe.close()
-        for process in vec.processes:
-            process.join(5)
+        stop_workers(self._vec)
         if self._local is not None:
             self._local.close()
         return RuntimeError(
