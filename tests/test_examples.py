@@ -31,6 +31,14 @@ import sim_device  # noqa: E402
 
 BIN = Path(sys.executable).parent
 
+
+def _smoke(example: str, cwd) -> list[str]:
+    """``<example>_torchrl.py --smoke`` with the simulator and the learner's device pinned: on a
+    machine with CUDA too, the CPU sim and a CPU learner."""
+    script = str(EXAMPLES / f"{example}_torchrl.py")
+    return [sys.executable, script, "--smoke", "--sim-backend", "cpu", "--device", "cpu", "--out", str(cwd / example)]
+
+
 # test name -> the command it runs, given its working folder
 COMMANDS: dict[str, Callable[[Path], list[str]]] = {
     "test_demo_console_script_end_to_end": lambda cwd: [
@@ -49,29 +57,8 @@ COMMANDS: dict[str, Callable[[Path], list[str]]] = {
         "--no-progress",
     ],
     "test_python_dash_m_help": lambda cwd: [sys.executable, "-m", "maniskill_torchrl", "demo", "--help"],
-    # The simulator and the learner's device pinned: on a machine with CUDA too, the CPU sim and a CPU learner.
-    "test_ppo_smoke": lambda cwd: [
-        sys.executable,
-        str(EXAMPLES / "ppo_torchrl.py"),
-        "--smoke",
-        "--sim-backend",
-        "cpu",
-        "--device",
-        "cpu",
-        "--out",
-        str(cwd / "ppo"),
-    ],
-    "test_sac_smoke": lambda cwd: [
-        sys.executable,
-        str(EXAMPLES / "sac_torchrl.py"),
-        "--smoke",
-        "--sim-backend",
-        "cpu",
-        "--device",
-        "cpu",
-        "--out",
-        str(cwd / "sac"),
-    ],
+    "test_ppo_smoke": lambda cwd: _smoke("ppo", cwd),
+    "test_sac_smoke": lambda cwd: _smoke("sac", cwd),
     "test_evaluate_gym": lambda cwd: [
         sys.executable,
         str(EXAMPLES / "evaluate_gym.py"),
