@@ -10,11 +10,11 @@ import pickle
 import pytest
 import torch
 
+import maniskill_torchrl.assertions as assertions_module
 import maniskill_torchrl.episode_stats as episode_stats_module
 import maniskill_torchrl.masked_merge as masked_merge_module
 import maniskill_torchrl.numpy_sum as numpy_sum_module
 import maniskill_torchrl.pipeline as pipeline_module
-import maniskill_torchrl.testing as testing_module
 import maniskill_torchrl.transforms.env_states as env_states_module
 from maniskill_torchrl import ActionRepeat, EpisodeMetrics, IgnoreTerminations, ManiSkillEnv
 from maniskill_torchrl.pipeline import make_env
@@ -64,7 +64,14 @@ def test_partial_pickles_for_worker_processes():
 
 @pytest.mark.parametrize(
     "module",
-    [pipeline_module, masked_merge_module, episode_stats_module, numpy_sum_module, testing_module, env_states_module],
+    [
+        pipeline_module,
+        masked_merge_module,
+        episode_stats_module,
+        numpy_sum_module,
+        assertions_module,
+        env_states_module,
+    ],
 )
 def test_docstring_examples(module):
     result = doctest.testmod(module, optionflags=doctest.ELLIPSIS)
