@@ -9,7 +9,7 @@ own suite uses them, and so can yours (a task you registered with ``@register_en
   raw ManiSkill (and, for one env, the gym shim against ManiSkill's ``CPUGymWrapper``), with the
   same seeds and actions, resets included, and every output against the env's specs and device.
 
-The two assertions are written in :mod:`maniskill_torchrl.assertions` (no TorchRL or ManiSkill
+The two assertions are written in ``maniskill_torchrl.assertions`` (no TorchRL or ManiSkill
 import); this module exports them beside the env check.
 """
 
