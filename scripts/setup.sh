@@ -4,8 +4,10 @@
 #   bash scripts/setup.sh        (or: make setup)
 #
 # 1. Creates .venv at the repo root (python3 -m venv) if missing.
-# 2. Installs torch==2.13.0 (pinned; the CPU wheel comes from the pip
-#    config's find-links) and `pip install -e ".[test,demo,distributed,docs,maniskill]"`
+# 2. Installs torch==2.14.1 (pinned: torchrl 0.14.1's C extension, which prioritized replay
+#    needs, is built against torch 2.14 and does not load on another torch; on Linux that is
+#    PyPI's CUDA build with its nvidia-* wheels, found in a local pip index where there is one)
+#    and `pip install -e ".[test,demo,distributed,docs,maniskill]"`
 #    (the `maniskill` extra: the ManiSkill 3.0.x release) in one pip call, then
 #    byte-compiles site-packages on all cores (pip --no-compile + compileall -j 0).
 #    The torch pin (or the torch already installed) is passed to pip as a constraint,
@@ -21,7 +23,7 @@
 # .venv/.vulkan-ok.
 #
 # Environment knobs:
-#   MANISKILL_TORCHRL_SKIP_TORCH=1     don't install torch (bring your own, e.g.
+#   MANISKILL_TORCHRL_SKIP_TORCH=1     don't install torch (bring your own 2.14.x, e.g.
 #                                      a CUDA build, installed into .venv first)
 #   MANISKILL_TORCHRL_NO_APT=1         never touch apt; just print instructions
 #   MANISKILL_TORCHRL_FORCE_VULKAN_PROBE=1   ignore the cached Vulkan probe
@@ -33,7 +35,9 @@ set -euo pipefail
 
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 
-TORCH_PIN="torch==2.13.0"
+TORCH_PIN="torch==2.14.1"
+# torchrl's C extension loads on this torch minor only (the pin above, or a user's own build of it).
+TORCH_ABI="2.14"
 # Both are part of the stamp (this script's hash): changing them reinstalls.
 EXTRAS="test,demo,distributed,docs"
 NIGHTLY_SPEC="${MANISKILL_NIGHTLY_SPEC:-mani-skill-nightly>=2026.8,<2026.9}"
@@ -75,13 +79,18 @@ else
     constraints="$(mktemp)"
     trap 'rm -f "$constraints"' EXIT
     torch_req=()
-    if "$PY" -c "import torch" >/dev/null 2>&1; then
+    if "$PY" -c "import torch" >/dev/null 2>&1 && [[ "$(torch_version)" == "$TORCH_ABI".* ]]; then
         log "torch $(torch_version) already in $VENV, not reinstalling"
         echo "torch==$(torch_version)" >"$constraints"
     elif [[ "${MANISKILL_TORCHRL_SKIP_TORCH:-0}" == 1 ]]; then
-        die "MANISKILL_TORCHRL_SKIP_TORCH=1 but torch is not importable in $VENV;" \
-            "install your torch first: $PY -m pip install torch ... (or unset the variable)"
+        have="$("$PY" -c "import torch; print(torch.__version__)" 2>/dev/null || echo "not importable")"
+        die "MANISKILL_TORCHRL_SKIP_TORCH=1 but torch in $VENV is $have; torchrl 0.14's C extension" \
+            "needs torch $TORCH_ABI.x: install your build of it first ($PY -m pip install 'torch==$TORCH_ABI.*' ...)," \
+            "or unset the variable"
     else
+        if "$PY" -c "import torch" >/dev/null 2>&1; then
+            log "torch $(torch_version) in $VENV is not $TORCH_ABI.x, which torchrl's C extension needs: replacing it"
+        fi
         torch_req=("$TORCH_PIN")
         echo "$TORCH_PIN" >"$constraints"
     fi
