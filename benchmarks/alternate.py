@@ -27,12 +27,24 @@ __all__ = [
     "ProcessResult",
     "alternate_processes",
     "child_result",
+    "child_ready",
     "RESULT_MARKER",
     "add_alternation_args",
     "run_alternating",
 ]
 
 RESULT_MARKER = "@@bench-result "
+READY_MARKER = "@@bench-ready"  # a child's start-up is over (imports, pipeline built, warmed up)
+LAUNCH_ENV = "BENCH_LAUNCH_T"  # the parent's time.time() when it launched the child
+
+
+def child_ready() -> float | None:
+    """Tells the parent that this child's start-up is over; returns its start-up in seconds (from the
+    parent's launch), or None when not launched by :func:`alternate_processes`."""
+    sys.stdout.write(READY_MARKER + "\n")
+    sys.stdout.flush()
+    launch = os.environ.get(LAUNCH_ENV)
+    return round(time.time() - float(launch), 2) if launch else None
 
 
 def child_result(
@@ -111,31 +123,40 @@ def _end_group(pgid: int, grace: float = 10.0) -> None:
             pass
 
 
-def _run_child(c: ProcessContender, timeout: float, cwd: str | None) -> tuple[dict | None, str]:
+def _run_child(
+    c: ProcessContender, timeout: float, cwd: str | None, startup_limit: float | None = None
+) -> tuple[dict | None, str]:
     """Runs one child in its own session and returns its result as soon as it is printed.
 
+    A child that has not called :func:`child_ready` within ``startup_limit`` seconds is ended as
+    one that timed out.
     The child may exit right after :func:`child_result` without closing its workers (their
     teardown is not measured and can take seconds); whatever is left of its session is then
     ended here, as is the whole session of a child that hangs past ``timeout``."""
     import threading
 
-    env = dict(os.environ, PYTHONUNBUFFERED="1", **(c.env or {}))
+    env = dict(os.environ, PYTHONUNBUFFERED="1", **(c.env or {}), **{LAUNCH_ENV: repr(time.time())})
     proc = subprocess.Popen(
         c.argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, cwd=cwd, start_new_session=True
     )
     lines: list[str] = []
-    got = threading.Event()
+    got, ready = threading.Event(), threading.Event()
 
     def read() -> None:
         for line in proc.stdout:  # until every process of the session has closed the pipe
             lines.append(line)
+            if line.startswith(READY_MARKER):
+                ready.set()
             if line.startswith(RESULT_MARKER):
                 got.set()
         got.set()
+        ready.set()
 
     reader = threading.Thread(target=read, daemon=True)
     reader.start()
-    timed_out = not got.wait(timeout)
+    t0 = time.monotonic()
+    late = startup_limit is not None and not ready.wait(min(startup_limit, timeout))
+    timed_out = late or not got.wait(max(0.0, timeout - (time.monotonic() - t0)))
     try:
         if not timed_out:
             try:
@@ -150,6 +171,8 @@ def _run_child(c: ProcessContender, timeout: float, cwd: str | None) -> tuple[di
             pass
         reader.join(timeout=5)
     out = "".join(lines)
+    if late:
+        return None, f"start-up over its {startup_limit:.0f} s limit\n{out[-2000:]}"
     if timed_out:
         return None, f"timed out after {timeout:.0f} s\n{out[-2000:]}"
     payload = None
@@ -173,6 +196,7 @@ def alternate_processes(
     accept: Callable[[dict], bool] | None = None,
     retries: int = 0,
     on_result: Callable[[str, int, dict | None], None] | None = None,
+    startup_limit: float | None = None,
 ) -> dict[str, ProcessResult]:
     """Runs each contender ``rounds`` times, each run a fresh child process, rounds alternating.
 
@@ -185,6 +209,7 @@ def alternate_processes(
     the reading in the round's extras as ``busy_before``. A result that ``accept(payload)``
     rejects (say, other jobs took cores during the timed window) is run again, up to ``retries``
     more times; the last try is kept either way, with the number of rejected tries in ``rejected``.
+    ``startup_limit``: seconds a child may take to call :func:`child_ready` (see :func:`_run_child`).
     """
     if clock not in ("wall", "cpu"):
         raise ValueError(f"clock must be 'wall' or 'cpu', got {clock!r}.")
@@ -202,7 +227,7 @@ def alternate_processes(
             while True:
                 busy = wait_for_quiet(*quiet, verbose=verbose) if quiet is not None else None
                 t0 = time.perf_counter()
-                payload, log = _run_child(c, timeout, cwd)
+                payload, log = _run_child(c, timeout, cwd, startup_limit)
                 took = time.perf_counter() - t0
                 if (
                     payload is None
@@ -256,6 +281,12 @@ def add_alternation_args(p: argparse.ArgumentParser, retries: int = 2) -> None:
     """The flags of :func:`run_alternating`: rounds' process limits and the quiet-machine checks."""
     p.add_argument("--timeout", type=float, default=240.0, help="per child process (killed after)")
     p.add_argument(
+        "--startup-limit",
+        type=float,
+        default=None,
+        help="seconds a child may take to start (imports, build, warm-up) before it is ended (default: --timeout)",
+    )
+    p.add_argument(
         "--max-busy",
         type=float,
         default=0.3,
@@ -277,7 +308,7 @@ def add_alternation_args(p: argparse.ArgumentParser, retries: int = 2) -> None:
     p.add_argument("-q", "--quiet", action="store_true", help="no per-run lines")
 
 
-def run_alternating(contenders: list, args: argparse.Namespace, cwd: str) -> dict:
+def run_alternating(contenders: list, args: argparse.Namespace, cwd: str, on_result=None) -> dict:
     """:func:`alternate_processes` with the flags of :func:`add_alternation_args` (and ``--rounds``)."""
     return alternate_processes(
         contenders,
@@ -288,4 +319,6 @@ def run_alternating(contenders: list, args: argparse.Namespace, cwd: str) -> dic
         quiet=(args.max_busy, args.max_wait) if args.max_wait > 0 else None,
         accept=lambda r: r.get("others_cores", 0.0) <= args.max_others,
         retries=args.retries,
+        on_result=on_result,
+        startup_limit=args.startup_limit,
     )

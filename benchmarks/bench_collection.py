@@ -158,7 +158,25 @@ def main(argv: list[str] | None = None) -> int:
         for n in args.n
         for spec in specs
     ]
-    results = run_alternating(contenders, args, cwd=os.path.dirname(HERE))
+    settings = {
+        "env_id": ENV_ID,
+        "episode": EPISODE,
+        "n": args.n,
+        "repeat": args.repeat,
+        "rounds": args.rounds,
+        "seconds": args.seconds,
+        "pipelines": specs,
+    }
+    runs: list[dict] = []  # every child's report, written as it comes (a sweep cut short keeps its runs)
+
+    def on_result(name: str, r: int, payload: dict | None) -> None:
+        runs.append({"name": name, "round": r, "result": payload})
+        if args.out:
+            save_json(
+                args.out, {"benchmark": "bench_collection", "settings": settings, "complete": False, "runs": runs}
+            )
+
+    results = run_alternating(contenders, args, cwd=os.path.dirname(HERE), on_result=on_result)
     took = time.perf_counter() - t0
     table = fmt_table(results, specs, args.n, args.repeat)
     print(
@@ -182,15 +200,9 @@ def main(argv: list[str] | None = None) -> int:
             args.out,
             {
                 "benchmark": "bench_collection",
-                "settings": {
-                    "env_id": ENV_ID,
-                    "episode": EPISODE,
-                    "n": args.n,
-                    "repeat": args.repeat,
-                    "rounds": args.rounds,
-                    "seconds": args.seconds,
-                    "pipelines": specs,
-                },
+                "settings": settings,
+                "complete": True,
+                "runs": runs,
                 "wall_s": took,
                 "table": table,
                 "results": {k: v.as_dict() for k, v in results.items()},

@@ -14,7 +14,7 @@ import sys
 import time
 import warnings
 
-from alternate import child_result
+from alternate import child_ready, child_result
 
 ENV_ID = "PickCube-v1"
 EPISODE = 50
@@ -135,6 +135,7 @@ def _parse_options(spec: str) -> tuple[str, dict[str, str]]:
 def _time_collector(collector, seconds: float, meter: _CPUMeter) -> dict:
     it = iter(collector)
     next(it)  # warm-up: first reset and one batch, untimed
+    startup = child_ready()
     frames = 0
     a = meter.snapshot()
     t0 = time.perf_counter()
@@ -145,7 +146,7 @@ def _time_collector(collector, seconds: float, meter: _CPUMeter) -> dict:
         if wall >= seconds:
             break
     b = meter.snapshot()
-    return _measured(frames, wall, a, b)
+    return {**_measured(frames, wall, a, b), "startup_s": startup}
 
 
 def gym_vector_env(n: int, repeat: int):
@@ -166,6 +167,7 @@ def child_gym(n: int, repeat: int, seconds: float, opts: dict) -> dict:
     sample, step = envs.action_space.sample, envs.step
     for _ in range(EPISODE):  # warm-up
         step(sample())
+    startup = child_ready()
     frames = 0
     a = meter.snapshot()
     t0 = time.perf_counter()
@@ -177,7 +179,7 @@ def child_gym(n: int, repeat: int, seconds: float, opts: dict) -> dict:
         if wall >= seconds:
             break
     b = meter.snapshot()
-    return _measured(frames, wall, a, b)
+    return {**_measured(frames, wall, a, b), "startup_s": startup}
 
 
 def child_batched(n: int, repeat: int, seconds: float, opts: dict) -> dict:
@@ -286,8 +288,22 @@ def run_child(spec: str, n: int, repeat: int, seconds: float) -> None:
     kind, opts = _parse_options(spec)
     if kind not in CHILDREN:
         raise SystemExit(f"unknown pipeline {spec!r}; kinds: {sorted(CHILDREN)}")
+    launch = os.environ.get("BENCH_LAUNCH_T")
     t0 = time.perf_counter()
+    # start-up, in parts: the interpreter and this script, then the heavy imports (all from a cold
+    # start: the process is fresh), then the pipeline's build and warm-up (startup_s, the sum)
+    interp = round(time.time() - float(launch), 2) if launch else None
+    import gymnasium  # noqa: F401
+    import mani_skill.envs  # noqa: F401
+    import torch  # noqa: F401
+
+    if kind != "gym":
+        import torchrl.collectors  # noqa: F401
+
+        import maniskill_torchrl  # noqa: F401
+    imports = round(time.perf_counter() - t0, 2)
     out = CHILDREN[kind](n, repeat, seconds, opts)
+    out["interpreter_s"], out["imports_s"] = interp, imports
     out["child_s"] = round(time.perf_counter() - t0, 2)
     child_result(**out)
     sys.stdout.flush()

@@ -17,7 +17,9 @@ warnings.filterwarnings("ignore", module="mani_skill")
 def pytest_collection_finish(session: pytest.Session) -> None:
     """Each test module with a selected test that defines ``start_early()`` gets it called once,
     right after collection (not with ``--collect-only``): ``test_hang.py`` starts its script of
-    several processes there, which then runs beside the tests before it instead of after them."""
+    several processes there, which then runs beside the tests before it instead of after them.
+    Under pytest-xdist every worker calls it, and ``test_hang.start_early`` starts its script in
+    the first worker only (once per test run)."""
     if session.config.option.collectonly:
         return
     started = set()

@@ -30,6 +30,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import pytest
@@ -125,65 +126,102 @@ if __name__ == "__main__":
 
 
 class _Run:
-    """The script, running in its own session (a hung run is killed with its workers)."""
+    """The script, running in its own session (a hung run is killed with its workers), its output and
+    exit code in ``folder``: another process of the same test run (an xdist worker) can wait for it."""
 
-    def __init__(self, folder: Path) -> None:
-        script = folder / "sequence.py"
-        script.write_text(SCRIPT)
-        self.out, self.err = (open(folder / name, "w+") for name in ("stdout.txt", "stderr.txt"))
+    def __init__(self, folder: Path, start: bool = True) -> None:
+        self.folder, self.proc = folder, None
+        if not start:
+            return
+        (folder / "sequence.py").write_text(SCRIPT)
         env = dict(os.environ, PYTHONUNBUFFERED="1")
+        # sh writes the exit code once the script ends, whatever process waits for it
         self.proc = subprocess.Popen(
-            [sys.executable, str(script)],
+            ["sh", "-c", '"$0" sequence.py >stdout.txt 2>stderr.txt; echo $? >rc.tmp; mv rc.tmp rc', sys.executable],
             cwd=folder,
             env=env,
-            stdout=self.out,
-            stderr=self.err,
-            text=True,
             start_new_session=True,
         )
+        (folder / "pgid").write_text(str(self.proc.pid))
 
     def wait(self) -> subprocess.CompletedProcess:
-        try:
-            self.proc.wait(timeout=TIMEOUT_S)
-        except subprocess.TimeoutExpired:
+        rc = self.folder / "rc"
+        deadline = time.monotonic() + TIMEOUT_S
+        while not rc.exists() and time.monotonic() < deadline:
+            time.sleep(0.2)
+        out, err = self._read()
+        if not rc.exists():
             self.kill()
-            pytest.fail(f"the sequence hung (killed after {TIMEOUT_S} s); stdout so far:\n{self._read()[0][-3000:]}")
-        return subprocess.CompletedProcess(self.proc.args, self.proc.returncode, *self._read())
+            pytest.fail(f"the sequence hung (killed after {TIMEOUT_S} s); stdout so far:\n{out[-3000:]}")
+        return subprocess.CompletedProcess(["sequence.py"], int(rc.read_text()), out, err)
 
     def _read(self) -> tuple[str, str]:
-        self.out.seek(0)
-        self.err.seek(0)
-        return self.out.read(), self.err.read()
+        return tuple(
+            (self.folder / n).read_text() if (self.folder / n).exists() else "" for n in ("stdout.txt", "stderr.txt")
+        )
 
     def kill(self) -> None:
-        if self.proc.poll() is None:
-            try:
-                os.killpg(self.proc.pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
+        try:
+            os.killpg(int((self.folder / "pgid").read_text()), signal.SIGKILL)
+        except (OSError, ValueError):
+            pass
+        if self.proc is not None:
             self.proc.wait()
+
+    def finish(self) -> None:
+        """At this process's exit: the run may serve another xdist worker, so let it end (it was
+        started with the tests, so it is long over by then), bounded by its timeout."""
+        if self.proc is not None and self.proc.poll() is None:
+            try:
+                self.proc.wait(timeout=max(0.0, TIMEOUT_S - (time.monotonic() - self.started)))
+            except subprocess.TimeoutExpired:
+                pass
+        self.kill()
 
 
 _EARLY: list[_Run] = []
 
 
+def _shared_folder() -> Path | None:
+    """The folder of this test run's one early run under pytest-xdist (its workers share the run id)."""
+    uid = os.environ.get("PYTEST_XDIST_TESTRUNUID")
+    return Path(tempfile.gettempdir()) / f"test_hang_{uid}" if uid else None
+
+
 def start_early() -> None:
     """Called by ``conftest.py`` once the tests are collected, when a test of this file is selected:
     the script (about 45 s, most of it on one core: each stage waits for processes that import
-    torch, TorchRL and ManiSkill) then runs while the tests collected before this file run in the
-    pytest process. Killed when pytest exits if no test has waited for it."""
-    folder = Path(tempfile.mkdtemp(prefix="test_hang_"))
+    torch, TorchRL and ManiSkill) then runs beside the tests collected before this file. Once per
+    test run: without xdist in the pytest process; under xdist (every worker collects every test)
+    only in the first worker to claim the run's shared folder, and whichever worker runs the tests
+    waits for that run. Killed when the starting process exits, after its timeout at the latest."""
+    shared = _shared_folder()
+    if shared is not None:
+        try:
+            shared.mkdir()
+        except FileExistsError:
+            return  # another worker started it
+        folder = shared
+    else:
+        folder = Path(tempfile.mkdtemp(prefix="test_hang_"))
+        atexit.register(shutil.rmtree, folder, ignore_errors=True)
     run = _Run(folder)
+    run.started = time.monotonic()
     _EARLY.append(run)
-    atexit.register(shutil.rmtree, folder, ignore_errors=True)
-    atexit.register(run.kill)  # first (atexit runs in reverse order)
+    atexit.register(run.finish)  # first (atexit runs in reverse order)
 
 
 @pytest.fixture(scope="module")
 def sequence(tmp_path_factory) -> subprocess.CompletedProcess:
     """The script's run, shared by the tests (each checks its own stages); started early when
     ``conftest.py`` could (:func:`start_early`)."""
-    run = _EARLY.pop() if _EARLY else _Run(tmp_path_factory.mktemp("hang"))
+    shared = _shared_folder()
+    if _EARLY:
+        run = _EARLY[0]
+    elif shared is not None and (shared / "pgid").exists():  # started by another xdist worker
+        run = _Run(shared, start=False)
+    else:
+        run = _Run(tmp_path_factory.mktemp("hang"))
     return run.wait()
 
 
