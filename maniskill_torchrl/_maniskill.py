@@ -9,6 +9,8 @@ import contextlib
 import functools
 import inspect
 import platform
+import re
+import weakref
 import zipfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -17,6 +19,7 @@ from typing import Any
 import torch
 
 __all__ = [
+    "RenderDeviceError",
     "auto_resetting_wrapper",
     "canonical_device",
     "check_assets",
@@ -26,8 +29,10 @@ __all__ = [
     "missing_assets",
     "no_asset_prompt",
     "maniskill_base_env",
+    "make_maniskill",
     "quiet_maniskill",
     "registered_env_ids",
+    "render_devices_in_use",
     "render_frame_shape",
     "reuses_buffers",
     "similar_env_ids",
@@ -78,6 +83,100 @@ def default_render_backend(maniskill_kwargs: dict) -> dict:
     if "render_backend" in maniskill_kwargs or platform.system() == "Darwin" or not _no_cuda_render_device():
         return maniskill_kwargs
     return {**maniskill_kwargs, "render_backend": "cpu"}
+
+
+# ----------------------------------------------------------------------------- render device
+# SAPIEN keeps one render engine per process, on one device, while any scene that renders lives,
+# and refuses a RenderSystem on another device meanwhile ("cpu" and "cuda:0" are two devices).
+_SINGLE_RENDER_DEVICE = "only supports single-GPU rendering"
+_ASKED_DEVICE = re.compile(r'on device "([^"]*)"')
+# (ManiSkill env, its task id, its render device) for each env made through make_maniskill:
+# what this process renders on, for as long as such an env lives.
+_RENDERING: list[tuple[weakref.ref, str, str]] = []
+
+
+class RenderDeviceError(RuntimeError):
+    """A ManiSkill env asked SAPIEN for a render device other than the one this process already
+    renders on. SAPIEN keeps one render device per process while any env that renders lives;
+    the message names both devices and the fixes."""
+
+
+def _device_name(device: Any) -> str:
+    """A SAPIEN device as torch names it: ``"cpu"``, ``"cuda:0"``."""
+    if device.is_cuda():
+        return f"cuda:{device.cuda_id}"
+    return "cpu" if device.is_cpu() else str(device.name)
+
+
+def _render_backend_for(device: str) -> str:
+    """The ``render_backend`` that asks ManiSkill for ``device``."""
+    return "'cpu'" if device == "cpu" else f"'gpu' (ManiSkill's default) or '{device}'"
+
+
+def render_devices_in_use() -> dict[str, list[str]]:
+    """The render devices of the ManiSkill envs made in this process by the library that are still
+    alive (closed or not: a closed env's scene lives until the env is freed), with their task ids."""
+    alive: dict[str, list[str]] = {}
+    for ref, env_id, device in list(_RENDERING):
+        if ref() is None:
+            _RENDERING.remove((ref, env_id, device))
+        else:
+            alive.setdefault(device, []).append(env_id)
+    return alive
+
+
+def render_device_message(env_id: str, asked: str, in_use: dict[str, list[str]], *, batched: bool = False) -> str:
+    """What to tell a user whose env ``env_id`` asked SAPIEN to render on ``asked`` while this
+    process renders on another device (``in_use``: device -> task ids, from the library's envs)."""
+    others = {d: ids for d, ids in in_use.items() if d != asked}
+    if others:
+        held = "; ".join(
+            f'"{d}" (render_backend={_render_backend_for(d)}), for {", ".join(ids)}' for d, ids in others.items()
+        )
+        where = f"this process already renders on {held}"
+        same = f"render_backend={_render_backend_for(asked)} everywhere, or {_render_backend_for(next(iter(others)))}"
+    else:
+        where = "this process already renders on another device (an env made with another render_backend is alive)"
+        same = "the same render_backend everywhere"
+    fixes = [
+        f"one render_backend for every ManiSkill env of this process ({same}; left out everywhere, it is "
+        "'gpu' on a machine with CUDA and the CPU elsewhere)",
+        "close the other env and drop every reference to it (env.close(); del env) before making this one",
+        "make this env in another process: a ParallelEnv worker, Collector(make_env, backend='process', ...), "
+        "or a subprocess",
+    ]
+    if batched:
+        fixes[-1] += " (the batched CPU-sim env: ManiSkillEnv(..., in_process=False) makes every sub-env in a worker)"
+    return (
+        f'ManiSkill env {env_id!r} asks SAPIEN to render on "{asked}", but {where}. SAPIEN keeps one '
+        'render device per process while any env that renders lives ("cpu" and "cuda" are two devices). '
+        "Fix: " + "; ".join(f"({i}) {fix}" for i, fix in enumerate(fixes, 1)) + "."
+    )
+
+
+def make_maniskill(env_id: str, *, batched: bool = False, **kwargs: Any) -> Any:
+    """``gym.make(env_id, **kwargs)``, where SAPIEN's refusal of a second render device ("only
+    supports single-GPU rendering") becomes a :class:`RenderDeviceError` that names both devices
+    and the fixes (``batched``: the in-process sub-env of the batched CPU-sim env, which has one
+    more). The env's render device is remembered while the env lives."""
+    import gymnasium as gym
+
+    try:
+        env = gym.make(env_id, **kwargs)
+    except RuntimeError as e:
+        if _SINGLE_RENDER_DEVICE not in str(e):
+            raise
+        match = _ASKED_DEVICE.search(str(e))
+        asked = match.group(1) if match else str(kwargs.get("render_backend", "gpu"))
+        raise RenderDeviceError(
+            render_device_message(env_id, asked, render_devices_in_use(), batched=batched) + f" SAPIEN said: {e}"
+        ) from e
+    base = maniskill_base_env(env)
+    device = getattr(getattr(base, "backend", None), "render_device", None)
+    if device is not None:
+        render_devices_in_use()  # drops the freed ones
+        _RENDERING.append((weakref.ref(base), env_id, _device_name(device)))
+    return env
 
 
 class _NoCudaRenderWarning:

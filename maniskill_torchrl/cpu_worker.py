@@ -26,6 +26,7 @@ import torch
 
 from maniskill_torchrl._maniskill import (
     default_render_backend,
+    make_maniskill,
     maniskill_base_env,
     no_asset_prompt,
     render_frame_shape,
@@ -242,7 +243,9 @@ class MakeWorker:
 
         with no_asset_prompt(self.env_id):  # a worker has no terminal to answer ManiSkill's prompt
             kwargs = default_render_backend(self.kwargs)
-            return StepInObservation(gym.make(self.env_id, num_envs=1, **kwargs), self.index)
+            # Sub-env 0 in the parent shares its render device with the parent's other envs.
+            env = make_maniskill(self.env_id, batched=True, num_envs=1, **kwargs)
+            return StepInObservation(env, self.index)
 
 
 def _batch_scheduling() -> None:

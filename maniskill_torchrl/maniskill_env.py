@@ -6,7 +6,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-import gymnasium as gym
 import torch
 from torchrl.data.utils import DEVICE_TYPING
 
@@ -14,6 +13,7 @@ from maniskill_torchrl._maniskill import (
     check_assets,
     default_render_backend,
     enable_physx_gpu,
+    make_maniskill,
     no_asset_prompt,
     registered_env_ids,
     similar_env_ids,
@@ -118,7 +118,8 @@ class ManiSkillEnv(ManiSkillWrapper):
                     )
                 enable_physx_gpu()
             with no_asset_prompt(env_id):
-                env = gym.make(env_id, num_envs=num_envs, **default_render_backend(maniskill_kwargs))
+                # SAPIEN renders on one device per process: a second one is a RenderDeviceError.
+                env = make_maniskill(env_id, num_envs=num_envs, **default_render_backend(maniskill_kwargs))
         if inference_mode is None:  # this class owns the ManiSkill env: inference mode on the CPU sim
             inference_mode = on_cpu
         super().__init__(
@@ -135,3 +136,13 @@ class ManiSkillEnv(ManiSkillWrapper):
     @property
     def env_id(self) -> str:
         return self._env_id
+
+    def close(self, *, raise_if_closed: bool = True) -> None:
+        """Closes the ManiSkill env and lets it go: once this env is closed, nothing of it holds the
+        ManiSkill env (TorchRL keeps the constructor's ``env`` argument otherwise), so that its
+        scene and SAPIEN's render engine are freed with the last reference to the ManiSkill env,
+        even while this closed env is still referenced."""
+        super().close(raise_if_closed=raise_if_closed)
+        kwargs = self.__dict__.get("_constructor_kwargs")
+        if isinstance(kwargs, dict):
+            kwargs.pop("env", None)
