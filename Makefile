@@ -24,8 +24,8 @@ help:
 	@echo "  make demo    run the demo CLI (DEMO_ARGS=... passed to 'maniskill-torchrl demo')"
 	@echo "  make bench   run benchmarks/run_all.py"
 	@echo "  make gpu-kit fill .gpu/ with the wheels and .debs for the GPU checks (benchmarks/README.md)"
-	@echo "  make gpu-check  dry run here of scripts/gpu_check.sh, the accelerator machine's check: no kit,"
-	@echo "               .venv as it is, 2 suite workers, a short sweep (GPU_CHECK_LOCAL=1; outputs/gpu-check)"
+	@echo "  make gpu-check  dry run here of scripts/gpu_check.py, the accelerator machine's check: no kit,"
+	@echo "               .venv as it is, 2 suite workers, a short sweep, a few test files (GPU_CHECK_SUITE)"
 	@echo "  make clean   remove .venv, .venv-nightly and outputs/"
 
 setup:
@@ -60,5 +60,6 @@ clean:
 gpu-kit:
 	@bash scripts/gpu_kit.sh
 
+GPU_CHECK_SUITE ?= tests/test_stack.py tests/test_hang.py tests/test_install.py
 gpu-check: setup
-	GPU_CHECK_LOCAL=1 bash scripts/gpu_check.sh outputs/gpu-check
+	$(VENV)/bin/python scripts/gpu_check.py --local outputs/gpu-check --suite $(GPU_CHECK_SUITE)

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Builds the GPU kit: everything the accelerator machine lacks to run the checks of
-# scripts/gpu_check.sh (the whole CPU suite, tests/gpu, benchmarks/bench_gpu.py, the demo,
-# the example smoke runs, a collection sweep), as carries for the device tool (`make gpu-kit`).
+# scripts/gpu_check.py (the collection sweep, the obs-copy timing, the whole CPU suite, tests/gpu)
+# as carries for the device tool (`make gpu-kit`).
 #
 #   bash scripts/gpu_kit.sh            # fill .gpu/ (idempotent: downloads are cached)
 #   bash scripts/gpu_kit.sh --verify   # then check the slimmed wheels on the CPU sim here
@@ -16,7 +16,7 @@
 #                     and their missing dependencies, pinned below), mani_skill and sapien
 #                     slimmed by scripts/gpu_kit_slim.py (every asset the CPU suite opens
 #                     stays); no torch, no nvidia-* wheels; and this project's own wheel,
-#                     built here (maniskill_torchrl-*.whl: gpu_check.sh installs it into
+#                     built here (maniskill_torchrl-*.whl: gpu_check.py installs it into
 #                     the machine's Python, so that the maniskill-torchrl console script
 #                     exists beside python3, as the suite expects)
 #   .gpu/kit/gl/      Debian's Vulkan loader and GL/EGL dispatch .debs (libvulkan1 ...),
@@ -29,7 +29,7 @@
 # at most 64 MiB, the repository included, so a part holds at most 60 MiB (and at most
 # 64 MiB minus the repository's size). The kit takes two parts: .gpu/kit (the .debs and
 # what the wheels do not spill) and .gpu/kit2 (first fit, biggest wheel first). Carry and
-# install .gpu/kit2 first (`bash scripts/gpu_check.sh --install-only`), then run the
+# install .gpu/kit2 first (`python3 scripts/gpu_check.py --install-only`), then run the
 # check with .gpu/kit, back to back while the machine is warm (benchmarks/README.md).
 #
 # Downloads are cached in $GPU_KIT_CACHE (default ~/.cache/maniskill_torchrl/gpu-kit);
@@ -121,7 +121,7 @@ for dist in mani_skill sapien; do
     fi
 done
 
-# This project as a wheel (pure Python), built from the working tree each time: gpu_check.sh
+# This project as a wheel (pure Python), built from the working tree each time: gpu_check.py
 # installs it into the machine's Python (the console script), while the suite imports the
 # repository's copy (PYTHONPATH). Needs setuptools in the building Python (.venv has it).
 BUILD_PY="$PY"
@@ -234,7 +234,7 @@ EOF
 {
     echo "maniskill_torchrl GPU kit, built $(date -u +%Y-%m-%dT%H:%M:%SZ) by scripts/gpu_kit.sh"
     echo "For: python3.12 (cp312) manylinux x86_64 with torch 2.11 preinstalled; install with"
-    echo "  bash scripts/gpu_check.sh  (pip install --no-index --no-deps --target ... .gpu/kit*/wheels/*.whl;"
+    echo "  python3 scripts/gpu_check.py  (pip install --no-index --no-deps --target ... .gpu/kit*/wheels/*.whl;"
     echo "  maniskill_torchrl-*.whl into the machine's Python itself, for its console script)"
     echo
     echo "Left out on purpose (declared dependencies; the wheels are installed with --no-deps):"
@@ -256,7 +256,7 @@ for part in "$KIT.tmp"/kit*; do
     mv "$part" "$KIT/$name"
 done
 rm -rf "$KIT.tmp"
-# Every part names all parts and their wheel lists' hashes (what gpu_check.sh stamps an installed
+# Every part names all parts and their wheel lists' hashes (what gpu_check.py stamps an installed
 # part with): the check then knows whether a part installed by an earlier call is missing.
 for part in "$KIT"/kit*; do
     for p in "$KIT"/kit*; do echo "$(basename "$p") $(ls "$p"/wheels | sha256sum | cut -c1-16)"; done >"$part/PARTS.txt"
@@ -265,7 +265,7 @@ done
 # --------------------------------------------------------- PhysX GPU library
 # SAPIEN downloads libPhysXGpu_64.so from GitHub on the GPU sim's first use; the accelerator
 # machine cannot. When this machine has it (the GPU sim ran here once, or it was unzipped into
-# the folder by hand), it travels as its own part, .gpu/physx, which gpu_check.sh installs.
+# the folder by hand), it travels as its own part, .gpu/physx, which gpu_check.py installs.
 physx_ver="$(.venv/bin/python -c 'import sapien.physx as p; print(p.version())' 2>/dev/null || echo 105.1-physx-5.3.1.patch0)"
 physx_src="${GPU_KIT_PHYSX_DIR:-$HOME/.sapien/physx/$physx_ver}"
 if [[ -f "$physx_src/libPhysXGpu_64.so" ]]; then

@@ -7,7 +7,7 @@ installs: same name and version, RECORD lists exactly the files kept, and
 ``<name>.dist-info/SLIMMED.txt`` says what was dropped and why.
 
 The kit runs the GPU checks (``tests/gpu``, ``benchmarks/bench_gpu.py``: PushCube-v1 and
-MS-CartpoleBalance-v1) and the whole CPU suite (``scripts/gpu_check.sh``), so every asset
+MS-CartpoleBalance-v1) and the whole CPU suite (``scripts/gpu_check.py``), so every asset
 that the suite's tasks open stays. Those tasks are PickCube-v1, PushCube-v1 (and the test
 tasks registered on it), PullCube-v1, StackCube-v1, MS-CartpoleBalance-v1,
 TwoRobotPickCube-v1 (two ``panda_wristcam``: the RealSense D415 mesh), RotateValveLevel0-v1
