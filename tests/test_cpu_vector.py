@@ -305,10 +305,12 @@ def test_rgb_observations_and_render():
         td = env.reset(seed=4)
         assert td["pixels"].dtype == torch.uint8 and td.get(rgb_key).dtype == torch.uint8
         obs, _ = raw.reset(seed=5)
-        assert torch.equal(td.get(rgb_key)[1], obs["sensor_data"]["base_camera"]["rgb"][0])
-        assert torch.equal(td["pixels"][1], raw.render()[0])
+        # Raw pictures are on ManiSkill's render device (CUDA with sapien_cuda): compared on env.device.
+        assert td.device == env.device and td["pixels"].device == td.get(rgb_key).device == env.device
+        assert torch.equal(td.get(rgb_key)[1], obs["sensor_data"]["base_camera"]["rgb"][0].to(env.device))
+        assert torch.equal(td["pixels"][1], raw.render()[0].to(env.device))
         frames = env.render()
-        assert frames.shape == (N, 40, 48, 3) and frames.dtype == torch.uint8
+        assert frames.shape == (N, 40, 48, 3) and frames.dtype == torch.uint8 and frames.device == env.device
     finally:
         env.close()
         raw.close()
