@@ -4,7 +4,9 @@
   closing many at once: :func:`close_envs`;
 - comparing bit for bit: :func:`assert_same`, :func:`bits`, :func:`clone_tree`, :func:`tensor_infos`;
 - running what users run as subprocesses: :func:`run`, :func:`start` (to wait later),
-  :data:`ROOT`, :data:`EXAMPLES`, :data:`TIMEOUT_S`.
+  :data:`ROOT`, :data:`EXAMPLES`, :data:`TIMEOUT_S`;
+- running one test alone in a new process where it would otherwise mix render devices in this
+  one: :func:`alone_where_cuda`.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import gc
 import os
 import struct
 import subprocess
+import sys
 import tempfile
 from collections.abc import Iterable
 from pathlib import Path
@@ -205,3 +208,26 @@ class Started:
 def start(cmd: list[str], cwd: Path) -> Started:
     """Starts ``cmd`` like a user would, without waiting: ``start(...).result()`` is ``run(...)``."""
     return Started(cmd, cwd)
+
+
+OWN_PROCESS = "MANISKILL_TORCHRL_TEST_OWN_PROCESS"  # set in a test's own process (alone_where_cuda)
+
+
+def alone_where_cuda(request: Any) -> bool:
+    """For a test that renders with ``render_backend="cpu"``: on a machine with CUDA, where the other
+    tests' envs render with CUDA (ManiSkill's default) and SAPIEN renders on one device per
+    process, runs the test alone in a new pytest process and returns True: the caller then
+    returns (the new process passed). False where there is no CUDA (the CPU is the only render
+    device), or in that new process: the caller runs the test itself.
+
+    Call it first, before any fixture or env of the test makes a ManiSkill env."""
+    import torch
+
+    if os.environ.get(OWN_PROCESS) == "1" or not torch.cuda.is_available():
+        return False
+    env = dict(os.environ, **{OWN_PROCESS: "1", "PYTHONUNBUFFERED": "1"})
+    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "no:xdist", request.node.nodeid]
+    proc = subprocess.run(cmd, cwd=request.config.rootpath, env=env, capture_output=True, text=True, timeout=TIMEOUT_S)
+    _check(proc)
+    assert "1 passed" in proc.stdout, proc.stdout[-3000:]
+    return True

@@ -34,7 +34,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from torchrl.collectors import Collector
 from torchrl.envs import Compose, StepCounter, TransformedEnv
 
-from helpers import assert_same, bits, close_envs, make_gym_env, random_actions
+from helpers import alone_where_cuda, assert_same, bits, close_envs, make_gym_env, random_actions
 from maniskill_torchrl import ActionRepeat, EpisodeMetrics, ManiSkillEnv, ManiSkillWrapper
 from maniskill_torchrl._maniskill import canonical_device, reuses_buffers
 from maniskill_torchrl.errors import checked_base_env, checked_device
@@ -67,7 +67,7 @@ class CountOps(TorchDispatchMode):
 # ----------------------------------------------------------------------------- reused buffers
 RGB_KWARGS = dict(
     obs_mode="rgb",
-    render_backend="cpu",  # the oracle: ManiSkill's CPU read, also on a machine with CUDA
+    render_backend="cpu",  # the oracle: ManiSkill's CPU read (on a CUDA machine, in a process of its own)
     render_mode="rgb_array",
     max_episode_steps=7,
     sensor_configs=dict(width=32, height=32),
@@ -122,27 +122,18 @@ class Scripted:
         return td
 
 
-@pytest.fixture(scope="module")
-def rgb_env():
-    env = make_gym_env("PickCube-v1", **RGB_KWARGS)
-    yield env
-    close_envs([env])
-
-
-# Wrappers made around the shared gym env stay alive here: a collected wrapper closes its env.
-_KEEP: list = []
-
-
-def _wrap(gym_env) -> ManiSkillWrapper:
+def _wrap(gym_env, keep: list) -> ManiSkillWrapper:
+    """A wrapper around the test's gym env, kept alive in ``keep`` until the test ends: a collected
+    wrapper closes its env, which the test's next wrappers share."""
     env = ManiSkillWrapper(gym_env, from_pixels=True)
-    _KEEP.append(env)
+    keep.append(env)
     return env
 
 
-def _pipeline(gym_env, steps: int) -> TensorDict:
+def _pipeline(gym_env, steps: int, keep: list) -> TensorDict:
     """ManiSkillWrapper -> ActionRepeat(2) -> EpisodeMetrics in a Collector, seeded, scripted."""
-    env = TransformedEnv(_wrap(gym_env), Compose(ActionRepeat(2), EpisodeMetrics()))
-    _KEEP.append(env)
+    env = TransformedEnv(_wrap(gym_env, keep), Compose(ActionRepeat(2), EpisodeMetrics()))
+    keep.append(env)
     env.set_seed(5)
     actions = random_actions(gym_env.unwrapped.single_action_space, steps + 1, seed=11)
     # No total_frames: a collector that reaches it closes its env, which the next run reuses.
@@ -152,7 +143,18 @@ def _pipeline(gym_env, steps: int) -> TensorDict:
     return batch
 
 
-def test_reused_picture_buffers_do_not_alias_returned_data(rgb_env):
+def test_reused_picture_buffers_do_not_alias_returned_data(request):
+    # The oracle renders with render_backend="cpu": on a CUDA machine, alone in its own process.
+    if alone_where_cuda(request):
+        return
+    rgb_env, keep = make_gym_env("PickCube-v1", **RGB_KWARGS), []
+    try:
+        _reused_picture_buffers(rgb_env, keep)
+    finally:
+        close_envs([*keep, rgb_env])
+
+
+def _reused_picture_buffers(rgb_env, keep: list) -> None:
     steps = 6  # 7-step episodes, repeat 2: an episode ends mid-repeat, and a reset follows
     actions = random_actions(rgb_env.unwrapped.single_action_space, steps, seed=3)
 
@@ -168,13 +170,13 @@ def test_reused_picture_buffers_do_not_alias_returned_data(rgb_env):
         return out, kept
 
     assert not reuses_buffers(rgb_env.unwrapped)
-    expected, _ = rollout(_wrap(rgb_env))
+    expected, _ = rollout(_wrap(rgb_env, keep))
     with sapien_reused_pictures(rgb_env) as buffers:
-        env = _wrap(rgb_env)
+        env = _wrap(rgb_env, keep)
         assert reuses_buffers(rgb_env.unwrapped)
         got, kept = rollout(env)
         assert buffers, "the double saw no camera read"
-        batch = _pipeline(rgb_env, steps)
+        batch = _pipeline(rgb_env, steps, keep)
     # The frames change from step to step: an aliased frame would show.
     frames = [td["sensor_data", "base_camera", "rgb"] for td in expected]
     assert any(not torch.equal(frames[0], f) for f in frames[1:])
@@ -183,7 +185,7 @@ def test_reused_picture_buffers_do_not_alias_returned_data(rgb_env):
         assert_same(now, want, f"step {i} as returned")
         assert_same(later, want, f"step {i} after the later steps")
 
-    reference = _pipeline(rgb_env, steps)  # the same pipeline on ManiSkill's copying CPU read
+    reference = _pipeline(rgb_env, steps, keep)  # the same pipeline on ManiSkill's copying CPU read
     assert_same(batch, reference, "collector batch")
     rgb = reference["next", "sensor_data", "base_camera", "rgb"]
     assert any(not torch.equal(rgb[:, 0], rgb[:, t]) for t in range(1, steps))
