@@ -195,7 +195,7 @@ def alternate_processes(
     quiet: tuple[float, float] | None = None,
     accept: Callable[[dict], bool] | None = None,
     retries: int = 0,
-    on_result: Callable[[str, int, dict | None], None] | None = None,
+    on_result: Callable[[str, int, dict], None] | None = None,
     startup_limit: float | None = None,
 ) -> dict[str, ProcessResult]:
     """Runs each contender ``rounds`` times, each run a fresh child process, rounds alternating.
@@ -244,8 +244,8 @@ def alternate_processes(
                         f"units/s; {payload}), running it again",
                         flush=True,
                     )
-            if on_result is not None:
-                on_result(c.name, r, payload)
+            if on_result is not None:  # a failed run: {"failed": why}
+                on_result(c.name, r, payload if payload is not None else {"failed": log.strip()[:300]})
             if payload is None:
                 res.failures += 1
                 res.note = f"failed: {log.strip().splitlines()[0] if log.strip() else 'no output'}"

@@ -169,7 +169,7 @@ def main(argv: list[str] | None = None) -> int:
     }
     runs: list[dict] = []  # every child's report, written as it comes (a sweep cut short keeps its runs)
 
-    def on_result(name: str, r: int, payload: dict | None) -> None:
+    def on_result(name: str, r: int, payload: dict) -> None:
         runs.append({"name": name, "round": r, "result": payload})
         if args.out:
             save_json(

@@ -58,6 +58,16 @@ if ! ls /usr/share/vulkan/icd.d/nvidia_icd.json /etc/vulkan/icd.d/nvidia_icd.jso
 fi
 """
 
+# The machine's own packages that the checks import and that have no .pyc.
+UNCOMPILED = r"""
+import importlib.util, os
+for name in ("torch", "numpy", "scipy", "sympy", "networkx", "PIL", "h5py", "imageio", "matplotlib", "cv2"):
+    spec = importlib.util.find_spec(name)
+    if spec and spec.origin and spec.origin.endswith("__init__.py"):
+        if not os.path.exists(importlib.util.cache_from_source(spec.origin)):
+            print(os.path.dirname(spec.origin))
+"""
+
 # One fresh process: import times, versions, C extensions, what this torch supports.
 PROBE = r"""
 import json, os, sys, time
@@ -179,11 +189,14 @@ def install(args, env: dict) -> tuple[list[str], float, str | None]:
             st, _, _ = run(pip + ["--force-reinstall"] + own, 60, echo=False)
             log(f"{part}: the project's wheel into {args.python}'s environment: {st}")
         stamp.touch()
-    # Byte-compile the site and the repository: each fresh process (suite workers, benchmark children)
-    # then loads .pyc instead of compiling mani_skill, torchrl, tensordict, sapien from source.
-    st, _, s = run([args.python, "-m", "compileall", "-q", "-j", "0", str(site), "maniskill_torchrl", "tests",
-                    "benchmarks", "examples"], 120, echo=False)  # fmt: skip
-    log(f"compileall of {site} and the repository: {st} in {s}s")
+    # Byte-compile the site, the repository and the machine's own packages that the checks import if
+    # they have no .pyc: each fresh process (suite workers, benchmark children) then loads .pyc instead
+    # of compiling torch, mani_skill, torchrl, tensordict, sapien from source (PYTHONDONTWRITEBYTECODE).
+    res = subprocess.run([args.python, "-c", UNCOMPILED], capture_output=True, text=True)
+    own = res.stdout.split()
+    dirs = [str(site), "maniskill_torchrl", "tests", "benchmarks", "examples", *own]
+    st, _, s = run([args.python, "-m", "compileall", "-q", "-j", "0", *dirs], 150, echo=False)
+    log(f"compileall of {site}, the repository and the machine's {own or 'nothing (all compiled)'}: {st} in {s}s")
     return parts, time.monotonic() - t, None
 
 
@@ -232,8 +245,8 @@ def sweep_summary(path: Path) -> dict:
     for run_ in d.get("runs", []):
         spec, n = run_["name"].split(" N=")[0], int(run_["name"].split("N=")[1].split()[0])
         r = run_.get("result")
-        if not r or r.get("skipped"):
-            failed.setdefault(spec, {})[n] = (r or {}).get("skipped", "failed (gpu_check.log)")
+        if not r or r.get("skipped") or r.get("failed"):
+            failed.setdefault(spec, {})[n] = (r or {}).get("skipped") or (r or {}).get("failed") or "failed"
             continue
         fps.setdefault(spec, {})[n] = round(r["units"] / r["wall_s"], 1)
         startup[f"{spec} N={n}"] = {k: r.get(k) for k in ("startup_s", "interpreter_s", "imports_s")}
@@ -268,9 +281,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--per-test-s", type=float, default=150, help="one test's limit (pytest-timeout, if there)")
     p.add_argument("--suite", nargs="+", default=["tests"], help="what the suite stage runs (tests)")
     args = p.parse_args(argv)
-    if args.local:
-        args.workers, args.sweep_n, args.sweep_seconds = min(args.workers, 2), [1, 2], 1.0
-        args.budget, args.sweep_s, args.startup_limit, args.copy_s = 3600, 600, 120, 300
+    if args.local:  # a dry run here: what the command line leaves at its default
+        local = {"workers": min(args.workers, 2), "sweep_n": [1, 2], "sweep_seconds": 1.0, "budget": 3600,
+                 "sweep_s": 600, "startup_limit": 120, "copy_s": 300}  # fmt: skip
+        for k, v in local.items():
+            if getattr(args, k) == p.get_default(k):
+                setattr(args, k, v)
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     for f in ("summary.json", "gpu_check.log", "sweep.json", "device_copy.json", "suite.xml", "gpu.xml"):
@@ -321,7 +337,7 @@ def main(argv: list[str] | None = None) -> int:
     stages = summary["stages"] = {}
     py = args.python
     for name in args.stages:
-        left = args.budget - (time.monotonic() - T0) - 10  # 10 s for the summary
+        left = args.budget - (time.monotonic() - T0) - 30  # a stage stopped at its limit gets 20 s to end
         if name == "gpu" and physx:
             stages[name] = {"status": "skipped", "note": physx}
             continue
