@@ -306,6 +306,16 @@ def main(argv: list[str] | None = None) -> int:
             summary["error"] = error
         summary["ok"] = code == 0 and not summary["failed_stages"]
         (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
+        for k, v in stages.items():  # the end of the output is what the device tool's reply shows
+            counts = {c: v[c] for c in ("passed", "failed", "errors", "skipped") if c in v}
+            wall, limit = v.get("wall_s", 0), v.get("limit_s", 0)
+            print(f"  {k:6s} {v['status']:9s} {wall:6.1f}s / {limit}s {counts} {v.get('note', '')}")
+            for t, msg in list(v.get("failed_tests", {}).items())[:30]:
+                print(f"         FAILED {t}: {msg[:200]}")
+            for key in ("frames_per_s", "ratio_batched_to_gym", "scaling_vs_n_times_n1", "child_startup_s",
+                        "not_measured", "result"):  # fmt: skip
+                if v.get(key):
+                    print(f"         {key}: {json.dumps(v[key])}")
         log(f"summary.json: ok={summary['ok']}, {summary['wall_s']}s; failed {summary['failed_stages']}, "
             f"skipped {list(summary['skipped_stages'])}")  # fmt: skip
         return code if code else (0 if summary["ok"] else 1)
@@ -374,6 +384,8 @@ def main(argv: list[str] | None = None) -> int:
                 stages[name].update(status="failed", note="runs without a result (not_measured)")
         elif name == "copy" and st != "passed" and "--timing" in run.output and "unrecognized" in run.output:
             stages[name].update(status="skipped", note="bench_obs_copy.py has no --timing mode yet")
+        elif name == "copy" and (out / "device_copy.json").exists():
+            stages[name]["result"] = json.loads((out / "device_copy.json").read_text())
         elif name in ("suite", "gpu"):
             stages[name].update(junit(out / f"{name}.xml"))
         log(f"stage {name}: {stages[name]['status']} (exit {rc}) in {s}s")
