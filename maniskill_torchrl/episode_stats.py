@@ -8,13 +8,15 @@ spec, :meth:`EpisodeStats.zeros`, :meth:`EpisodeStats.update` and the gym shim's
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase
 
 from maniskill_torchrl._private import new_tensordict
+from maniskill_torchrl.host_gather import HostGather
 from maniskill_torchrl.numpy_sum import NumpyOrderSums
 
 __all__ = ["EPISODE_FIELDS", "SUMMATIONS", "EpisodeField", "EpisodeStats", "episode_fields"]
@@ -133,18 +135,55 @@ class EpisodeStats:
         if native_return and summation != "numpy":
             raise ValueError("native_return=True needs summation='numpy' (numpy.sum's dtypes).")
         self._numpy = NumpyOrderSums(self.batch_size, native=native_return) if summation == "numpy" else None
+        self._set_host_side()
+
+    def to(self, device: torch.device | str) -> EpisodeStats:
+        """The statistics on ``device`` from now on (the summation and its history kept). Returns self."""
+        self.device = torch.device(device)
+        self._set_host_side()
+        return self
+
+    def _set_host_side(self) -> None:
+        # numpy's summation for an env on an accelerator (the CPU sim with device="cuda"): summed
+        # on the host from a host-side mirror of the last output (no device read), then moved up
+        # in one transfer.
+        self._host = self._numpy is not None and self.device.type != "cpu"
+        self._up = HostGather(self.device) if self._host else None
+        self._mirror: tuple[TensorDictBase, dict] | None = None
 
     def zeros(self) -> TensorDict:
         """The ``"episode"`` TensorDict of a fresh episode (all zeros), as :meth:`update` lays it out."""
         b, dev = self.batch_size, self.device
         out = {f.name: torch.zeros(b, dtype=f.dtype, device=dev) for f in self.fields}
-        return new_tensordict(out, batch_size=b, device=dev)
+        out = new_tensordict(out, batch_size=b, device=dev)
+        if self._host:
+            self._mirror = (out, {f.name: torch.zeros(b, dtype=f.dtype) for f in self.fields})
+        return out
 
     def restart(self, previous: TensorDictBase, mask: torch.Tensor) -> TensorDictBase:
         """``previous`` with the envs in ``mask`` (a bool tensor shaped as the batch) back at zero."""
         mask = mask.reshape(self.batch_size)
+        if self._host:  # on the host mirror (the mask read once, at a reset), moved up once
+            mask = mask.cpu()
+            out = {k: v.masked_fill(mask, 0) for k, v in self._host_previous(previous).items()}
+            return self._moved_up(out)
         # Out of place: ``previous`` may be a step the caller keeps.
         return previous.apply(lambda value: value.masked_fill(mask, 0))
+
+    def _host_previous(self, previous: TensorDictBase) -> dict:
+        """``previous`` on the host: the mirror of this object's last output if it is that output
+        (no device read), else read from the device."""
+        mirror = self._mirror
+        if mirror is not None and all(previous.get(k) is mirror[0].get(k) for k in mirror[1]):
+            return mirror[1]
+        return {f.name: previous.get(f.name).cpu() for f in self.fields}
+
+    def _moved_up(self, out: dict) -> TensorDict:
+        """Host entries ``out`` on the device in one transfer; the host side kept as the mirror."""
+        moved = new_tensordict(self._up(out), batch_size=self.batch_size, device=self.device)
+        # The at_end flags may be views of an env's host buffer, which its later steps rewrite.
+        self._mirror = (moved, {f.name: _kept(out[f.name], f) for f in self.fields})
+        return moved
 
     def update(
         self,
@@ -152,15 +191,42 @@ class EpisodeStats:
         reward: torch.Tensor,
         success: torch.Tensor | None = None,
         fail: torch.Tensor | None = None,
+        *,
+        host: Callable[[torch.Tensor], torch.Tensor | None] | None = None,
     ) -> TensorDict:
         """The ``"episode"`` TensorDict after one more step of every env.
 
         ``previous`` is the last step's (or :meth:`restart`'s) output, None for a fresh episode of
-        every env. Nothing is written into ``previous``.
+        every env. Nothing is written into ``previous``. ``host`` (optional) gives the host values
+        of a device tensor where they are at hand (an env's
+        :meth:`~maniskill_torchrl.ManiSkillWrapper.host_value`), else None: with numpy's
+        summation on an accelerator, ``reward``, ``success`` and ``fail`` are read from there
+        rather than from the device.
         """
-        b = self.batch_size
+        if self._host:
+            return self._update_on_host(previous, reward, success, fail, host)
         if previous is None:
             previous = self.zeros()
+        out = self._next(previous, reward, success, fail)
+        return new_tensordict(out, batch_size=self.batch_size, device=self.device)
+
+    def _update_on_host(self, previous, reward, success, fail, host) -> TensorDict:
+        def on_host(value: torch.Tensor | None) -> torch.Tensor | None:
+            if value is None or value.device.type == "cpu":
+                return value
+            mirrored = host(value) if host is not None else None
+            return mirrored if mirrored is not None else value.cpu()
+
+        if previous is None:
+            self.zeros()
+            state = self._mirror[1]
+        else:
+            state = self._host_previous(previous)
+        return self._moved_up(self._next(state, on_host(reward), on_host(success), on_host(fail)))
+
+    def _next(self, previous: Any, reward: torch.Tensor, success: Any, fail: Any) -> dict:
+        """The entries after one more step, from ``previous``'s (a TensorDict or a dict of them)."""
+        b = self.batch_size
         n = previous.get("episode_len")
         reward = reward.reshape(b)
         if self._numpy is not None:
@@ -184,4 +250,9 @@ class EpisodeStats:
                 out[f.name] = previous.get(f.name) | flags[f.source]
             else:  # "at_end"
                 out[f.name] = flags[f.source]
-        return new_tensordict(out, batch_size=b, device=self.device)
+        return out
+
+
+def _kept(value: torch.Tensor, field: EpisodeField) -> torch.Tensor:
+    """``value`` as the host mirror keeps it: an at_end flag copied (it may be an env's buffer)."""
+    return value.clone() if field.kind == "at_end" else value

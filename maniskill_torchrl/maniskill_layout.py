@@ -20,7 +20,8 @@ from tensordict import TensorDictBase
 
 from maniskill_torchrl._maniskill import render_frame_shape, wrapper_attr
 from maniskill_torchrl.cpu_vector import CPUVectorEnv
-from maniskill_torchrl.errors import action_error, check_info_keys
+from maniskill_torchrl.errors import action_error, check_info_keys, checked_device
+from maniskill_torchrl.host_gather import HostGather
 from maniskill_torchrl.specs import env_specs
 
 __all__ = ["ManiSkillLayout"]
@@ -52,14 +53,39 @@ class ManiSkillLayout:
         self._pixels_only = bool(pixels_only)
         self._requested_info_keys = info_keys
         self._unbatched = unbatched
+        self._set_device_rule(device)
+
+    def _set_device_rule(self, device: torch.device) -> None:
+        """How outputs reach ``device`` and actions the sim: at build time, and again at every
+        ``env.to(device)``."""
         # Every output goes to the env's device. What the sim hands out is copied there once where
         # it must be: ManiSkill may write into it later (the GPU sim, sapien_cuda pictures), it
         # was made under inference mode (the user gets normal tensors), or it is elsewhere
         # (a CPU-sim env with device="cuda"; sapien_cuda pictures of a CPU-sim env on the CPU).
+        unbatched = self._unbatched
         self._moves = device != self._sim_device
         self._copy_out = self._copies or self._moves
-        self._obs_leaf = _leaf(device, unbatched, self._copy_out)
-        self._info_leaf = _leaf(device, unbatched, True)  # infos may alias ManiSkill's (elapsed_steps)
+        # The CPU sim feeding an accelerator: a step's host outputs go up in one transfer
+        # (HostGather), its sapien_cuda pictures are copied on the device.
+        self._gather = HostGather(device) if self._moves and self._sim_device.type == "cpu" else None
+        if self._gather is not None:
+            self._obs_leaf = self._info_leaf = _unbatch if unbatched else None
+        else:
+            self._obs_leaf = _leaf(device, unbatched, self._copy_out)
+            self._info_leaf = _leaf(device, unbatched, True)  # infos may alias ManiSkill's (elapsed_steps)
+
+    def to(self, device: Any) -> ManiSkillLayout:
+        """This env with its outputs on ``device`` from now on, and its actions taken there.
+
+        Every output (steps, resets, ``"pixels"``, :meth:`render`, infos, :meth:`get_state`)
+        follows, as if the env had been built with ``device=device``: TorchRL calls this for
+        ``Collector(env, policy, device=...)``, ``env_device=``, ``TransformedEnv.to`` and
+        ``SerialEnv.to``. Returns this env.
+        """
+        device = checked_device(device, self._sim_device)
+        super().to(device)
+        self._set_device_rule(self.device)
+        return self
 
     def _make_specs(self, env: Any) -> None:
         base = env.unwrapped
@@ -112,8 +138,13 @@ class ManiSkillLayout:
             frame = frame.to(self.device, copy=True)
         return frame
 
-    def _render_batched(self, frame: Any) -> torch.Tensor:
-        frame = torch.as_tensor(frame, device=self.device)
+    def _render_batched(self) -> torch.Tensor:
+        """The ``"pixels"`` frame, batched: on ``env.device``, or as rendered where a gather moves it."""
+        if self._gather is None:
+            frame = torch.as_tensor(self.render(), device=self.device)
+        else:
+            with self._sim_mode():
+                frame = torch.as_tensor(self._env.render())
         if frame.ndim == 3:
             frame = frame.unsqueeze(0)
         return frame
@@ -127,12 +158,30 @@ class ManiSkillLayout:
         else:
             source = {"observation": obs if leaf is None else leaf(obs)}
         leaf = self._info_leaf
-        for key, td_key in self._info_map:
-            source[td_key] = leaf(info[key])
+        if leaf is None:
+            for key, td_key in self._info_map:
+                source[td_key] = info[key]
+        else:
+            for key, td_key in self._info_map:
+                source[td_key] = leaf(info[key])
         if self._from_pixels:
-            frame = self._render_batched(self.render())
+            frame = self._render_batched()
             source["pixels"] = frame[0] if self._unbatched else frame
         return source
+
+    def _on_device(self, source: dict) -> dict:
+        """``source`` (a step's or reset's entries) on ``env.device``: as it is, or gathered up."""
+        return source if self._gather is None else self._gather(source)
+
+    def host_value(self, tensor: torch.Tensor) -> torch.Tensor | None:
+        """The host values of ``tensor`` if it is an entry of this env's last step or reset that
+        came up from the host in its one transfer (a CPU-sim env on an accelerator), else None.
+
+        What :class:`~maniskill_torchrl.transforms.EpisodeMetrics` reads rewards and flags from
+        instead of the device. Valid until the next step or reset.
+        """
+        gather = self._gather
+        return None if gather is None else gather.host_value(tensor)
 
     def _sim_action(self, tensordict: TensorDictBase) -> Any:
         """The step's action as ManiSkill takes it (batched, on the sim's device), or an error that

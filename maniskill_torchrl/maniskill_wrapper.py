@@ -98,10 +98,10 @@ class ManiSkillWrapper(ManiSkillLayout, SavedStates, WorkerRepeat, EnvWrapper):
     Keyword Args:
         device: where the outputs are, and where actions are taken (TorchRL's meaning, as
             ``GymWrapper`` moves data): default, the sim's device. ``device="cuda"`` on a
-            CPU-sim env feeds a GPU policy: the sim steps on the CPU, its outputs are copied to
-            the GPU (``sapien_cuda`` pictures stay there: one copy on the GPU) and actions are
-            moved to the CPU. ``"cuda"`` and ``"cuda:0"`` name the same device on a machine whose
-            current CUDA device is 0.
+            CPU-sim env feeds a GPU policy: the sim steps on the CPU, its host outputs go to the
+            GPU in one non-blocking copy per step (``sapien_cuda`` pictures, already there, are
+            copied on the GPU) and actions are moved to the CPU. ``env.to(device)`` later is the
+            same. ``"cuda"`` and ``"cuda:0"`` name one device where the current CUDA device is 0.
         from_pixels (bool): add a ``"pixels"`` entry rendered with
             ``env.render()`` at every reset and step; the env must have been
             made with ``render_mode="rgb_array"``.
@@ -241,10 +241,12 @@ class ManiSkillWrapper(ManiSkillLayout, SavedStates, WorkerRepeat, EnvWrapper):
             obs, reward, terminated, truncated, info = self._env.step(action)
         source = self._to_tensordict(obs, info)
         # TorchRL's float32 reward for every task: some report bool (DrawTriangle-v1) or float64
-        # (RotateValveLevel*) rewards. The cast is a copy; done below is a new tensor.
-        if self._copy_out or reward.dtype != torch.float32:
-            reward = reward.to(self.device, torch.float32, copy=self._copy_out)
-        if self._copy_out:
+        # (RotateValveLevel*) rewards. The cast is a copy; done below is a new tensor. With a
+        # gather (_on_device), all stays on the host until its one transfer.
+        copy = self._copy_out and self._gather is None
+        if copy or reward.dtype != torch.float32:
+            reward = reward.to(self.device if copy else None, torch.float32, copy=copy)
+        if copy:
             terminated = terminated.to(self.device, copy=True)
             truncated = truncated.to(self.device, copy=True)
         # ManiSkill gives [B] tensors: unsqueeze is the cheapest way to [B, 1] (view(shape) costs
@@ -263,7 +265,7 @@ class ManiSkillWrapper(ManiSkillLayout, SavedStates, WorkerRepeat, EnvWrapper):
         source["terminated"] = terminated
         source["truncated"] = truncated
         source["done"] = done
-        return new_tensordict(source, batch_size=self.batch_size, device=self.device)
+        return new_tensordict(self._on_device(source), batch_size=self.batch_size, device=self.device)
 
     def _step_proc_data(self, next_tensordict_out: TensorDictBase) -> TensorDictBase:
         # _step already writes reward and the three done entries with their spec shapes and dtypes,
@@ -315,7 +317,7 @@ class ManiSkillWrapper(ManiSkillLayout, SavedStates, WorkerRepeat, EnvWrapper):
             seed = self._seeds.draw() if seed is None else seed
         with self._sim_mode():
             obs, info = self._env.reset(seed=seed, options=options)
-        source = self._to_tensordict(obs, info)
+        source = self._on_device(self._to_tensordict(obs, info))
         return new_tensordict(source, batch_size=self.batch_size, device=self.device)
 
     def _set_seed(self, seed: int | None) -> None:

@@ -25,7 +25,7 @@ class SavedStates:
     """The saved-state methods of :class:`~maniskill_torchrl.ManiSkillWrapper` (mixed into it).
 
     Reads the host's ``base_env``, ``_env``, ``_sim_mode``, ``_unbatched``, ``device``,
-    ``_sim_device``, ``batch_size`` and ``_to_tensordict``.
+    ``_sim_device``, ``batch_size``, ``_to_tensordict`` and ``_on_device``.
     """
 
     _state_row: TensorDictBase | None = None  # one env's state: the layout states are checked against
@@ -79,7 +79,8 @@ class SavedStates:
         # Nothing is drawn: the saved state, not a seed, makes this episode's start.
         with self._sim_mode():
             obs, info = self._env.reset(seed=seed, options=options)
-        return new_tensordict(self._to_tensordict(obs, info), batch_size=self.batch_size, device=self.device)
+        source = self._on_device(self._to_tensordict(obs, info))
+        return new_tensordict(source, batch_size=self.batch_size, device=self.device)
 
     def _state_rows(self, env_states: TensorDictBase | Mapping, env_idx: torch.Tensor | None) -> dict:
         """ManiSkill's ``reset_to_env_states`` batch: the rows of the envs being reset, on the sim's device."""

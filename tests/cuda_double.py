@@ -18,7 +18,13 @@ go wrong: ``.numpy()`` raises, an op mixing them with CPU tensors (other than 0-
 - new envs report ``backend.render_backend == "sapien_cuda"`` (ManiSkill's and the library's
   test of that road);
 - the library's probe for a CUDA render device says there is one (so it leaves ManiSkill's
-  default render backend alone, as on a CUDA machine).
+  default render backend alone, as on a CUDA machine);
+- ``torch.cuda.is_available()`` is True, one device, device 0 current, as TorchRL's collectors
+  and envs ask before they pick a synchronisation (``synchronize`` is counted; nothing runs on
+  ``"cuda"`` itself).
+
+It counts what crosses between host and device (:data:`TRANSFERS`): copies each way, and the
+host's waits for the device (``.cpu()``, ``.tolist()``, ``.item()``, ``synchronize``, events).
 
 Importing this module registers the device, which torch then takes for the machine's
 accelerator: so it is only imported in processes that stand for a CUDA machine.
@@ -40,7 +46,12 @@ from torch.utils._pytree import tree_map
 NAME = "fakecuda"
 
 #: Copies between the host and the device, and on the device, since the process started:
-#: ``{"d2h": n, "d2h_bytes": b, "h2d": ..., "d2d": ...}`` (``benchmarks/bench_obs_copy.py`` reads it).
+#: ``{"d2h": n, "d2h_bytes": b, "h2d": ..., "d2d": ...}`` (``benchmarks/bench_obs_copy.py`` reads it);
+#: ``"sync"``: the host waiting for the device, as CUDA makes it (a blocking copy to the host:
+#: ``.cpu()``, ``.to("cpu")``, ``.tolist()``, ``.item()``, ``bool()``; ``torch.cuda.synchronize``);
+#: ``"event_record"`` / ``"event_wait"``: an event recorded on the device, a wait for a recorded one
+#: (the wait for one copy, not for the device); ``"render_upload"``: a picture written into its
+#: device buffer by the stand-in renderer (SAPIEN's, not the library's, so not an ``h2d``).
 TRANSFERS: Counter = Counter()
 
 
@@ -85,6 +96,8 @@ class DeviceTensor(torch.Tensor):
     __array__ = numpy
 
     def tolist(self) -> Any:  # as from CUDA: a copy to the host, read
+        _count("d2h", self.inner)
+        TRANSFERS["sync"] += 1
         return self.inner.tolist()
 
     @classmethod
@@ -102,6 +115,7 @@ class DeviceTensor(torch.Tensor):
             out = func(src, *args[1:], **kwargs)
             if out is not src:
                 _count("d2h" if to_host else "d2d" if isinstance(args[0], DeviceTensor) else "h2d", out)
+                TRANSFERS["sync"] += to_host
             if to_host:
                 return out
             with torch.inference_mode(False):
@@ -118,6 +132,9 @@ class DeviceTensor(torch.Tensor):
         args, kwargs = tree_map(unwrap, args), tree_map(unwrap, kwargs)
         if name == "copy_" and mixed:
             _count("h2d", args[0])
+        elif name == "_local_scalar_dense":  # .item(), bool(): a read on the host
+            _count("d2h", args[0])
+            TRANSFERS["sync"] += 1
         elif name == "clone":
             _count("d2d", args[0])
         if mixed and name not in _MIXED_OK:
@@ -144,8 +161,27 @@ def _empty_strided(size: Any, stride: Any, **kwargs: Any) -> DeviceTensor:
     return DeviceTensor(torch.empty_strided(size, stride, **kwargs))
 
 
+class _Event:
+    """``torch.fakecuda.Event``, as ``torch.cuda.Event``: copies here end at once, so it only counts."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        self.recorded = False
+
+    def record(self, stream: Any = None) -> None:
+        self.recorded = True
+        TRANSFERS["event_record"] += 1
+
+    def synchronize(self) -> None:
+        TRANSFERS["event_wait"] += self.recorded
+
+    def query(self) -> bool:
+        return True
+
+
 class _DeviceModule:
     """``torch.fakecuda``: what torch asks of a device module (``fork_rng`` saves its RNG state)."""
+
+    Event = _Event
 
     def is_initialized(self) -> bool:
         return True
@@ -172,7 +208,7 @@ class _DeviceModule:
         pass
 
     def synchronize(self, device: Any = None) -> None:
-        pass
+        TRANSFERS["sync"] += 1
 
 
 def _copy_from(src: torch.Tensor, dst: DeviceTensor, non_blocking: bool = False) -> torch.Tensor:
@@ -219,7 +255,8 @@ def _patches() -> list[tuple[Any, str, Any]]:
             buf = buffers.get((id(self), name))
             if buf is None or buf.shape != picture.shape:
                 buf = buffers[id(self), name] = torch.empty(picture.shape, dtype=picture.dtype, device=DEVICE)
-            buf.copy_(picture)
+            buf.inner.copy_(picture)  # SAPIEN's own upload: counted apart from the library's copies
+            TRANSFERS["render_upload"] += 1
             out.append(buf)
         return out
 
@@ -240,7 +277,20 @@ def _patches() -> list[tuple[Any, str, Any]]:
     ]
 
 
+def _cuda_answers() -> list[tuple[Any, str, Any]]:
+    """``torch.cuda`` answering as on a CUDA machine where TorchRL asks (its collectors refuse a
+    device they know no synchronisation for: ``"Non supported device"``): available, one device,
+    device 0 current, ``synchronize`` counted (the double's device never lags). Nothing runs on
+    ``"cuda"`` itself: the double's device is ``fakecuda``."""
+    return [
+        (torch.cuda, "is_available", lambda: True),
+        (torch.cuda, "device_count", lambda: 1),
+        (torch.cuda, "current_device", lambda: 0),
+        (torch.cuda, "synchronize", _DeviceModule().synchronize),
+    ]
+
+
 def install() -> None:
     """The double, for good, in this process (``sitecustomize``)."""
-    for obj, attr, new in _patches():
+    for obj, attr, new in [*_patches(), *_cuda_answers()]:
         setattr(obj, attr, new)

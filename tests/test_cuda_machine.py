@@ -2,7 +2,8 @@
 CPU sim renders with ``sapien_cuda`` there, pictures on the GPU, states on the CPU), proven on any
 machine with the test double of ``tests/cuda_double.py``.
 
-The cases are in ``tests/cuda_machine_cases.py``; they run here with pytest in a subprocess whose
+The cases are in ``tests/cuda_machine_cases.py`` and ``tests/cuda_device_cases.py`` (``env.to()``,
+the copies of a step); they run here with pytest in a subprocess whose
 every Python process (the batched env's and ``ParallelEnv``'s workers too) loads the double
 through ``tests/cuda_site/sitecustomize.py``. The double registers a torch device, which torch then
 takes for the machine's accelerator: so it never loads in this pytest process.
@@ -16,7 +17,8 @@ import sys
 
 from helpers import ROOT
 
-CASES = ROOT / "tests" / "cuda_machine_cases.py"
+#: Run together, in one subprocess (one start-up of torch, TorchRL and ManiSkill).
+CASES = [ROOT / "tests" / "cuda_machine_cases.py", ROOT / "tests" / "cuda_device_cases.py"]
 
 
 def subprocess_env() -> dict[str, str]:
@@ -30,7 +32,7 @@ def subprocess_env() -> dict[str, str]:
 def test_library_on_a_cuda_machine():
     result = subprocess.run(
         [sys.executable, "-m", "pytest", "-q", "--tb=short", "--show-capture=no"]
-        + ["-p", "no:cacheprovider", "-p", "no:warnings", str(CASES)],
+        + ["-p", "no:cacheprovider", "-p", "no:warnings", *map(str, CASES)],
         cwd=ROOT,
         env=subprocess_env(),
         capture_output=True,

@@ -91,6 +91,7 @@ class EpisodeMetrics(Transform):
         super().__init__()
         self.summation = summation
         self._stats: EpisodeStats | None = None
+        self._host_value = None
 
     # ----------------------------------------------------------- set-up
     def _flags(self) -> tuple[bool, bool]:
@@ -117,7 +118,17 @@ class EpisodeMetrics(Transform):
         )
         self._reward_key = reward_keys[0]
         self._reset_keys = list(parent.reset_keys)
+        # Where the base env keeps the host values of what it moved up (a CPU-sim env on an
+        # accelerator): the numpy summation reads rewards and flags there, not from the device.
+        self._host_value = getattr(_base_env(parent), "host_value", None)
         return self._stats
+
+    def to(self, *args, **kwargs) -> EpisodeMetrics:
+        device = torch._C._nn._parse_to(*args, **kwargs)[0]
+        out = super().to(*args, **kwargs)
+        if device is not None and self._stats is not None:
+            self._stats.to(device)  # the episodes under way and their history go on
+        return out
 
     def set_container(self, container) -> None:
         super().set_container(container)
@@ -150,6 +161,7 @@ class EpisodeMetrics(Transform):
             next_tensordict.get(self._reward_key),
             next_tensordict.get("success") if stats.has_success else None,
             next_tensordict.get("fail") if stats.has_fail else None,
+            host=self._host_value,
         )
         next_tensordict.set("episode", episode)
         return next_tensordict
@@ -191,11 +203,16 @@ def _default_summation(parent: EnvBase) -> str:
     (a ``ParallelEnv`` of single envs, a toy env): ``"numpy"`` on the CPU, ``"running"`` on
     other devices.
     """
-    base = parent
-    while isinstance(base, TransformedEnv):
-        base = base.base_env
+    base = _base_env(parent)
     # Asked of the class: batched envs hand unknown attributes on to their sub-envs (a list).
     if hasattr(type(base), "gpu_sim_enabled"):
         return "running" if base.gpu_sim_enabled else "numpy"
     device = parent.device
     return "numpy" if device is None or torch.device(device).type == "cpu" else "running"
+
+
+def _base_env(env: EnvBase) -> EnvBase:
+    """The env under ``env``'s transformed envs."""
+    while isinstance(env, TransformedEnv):
+        env = env.base_env
+    return env
