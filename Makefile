@@ -58,7 +58,7 @@ clean:
 	rm -rf .venv .venv-nightly outputs/
 
 gpu-kit:
-	@bash scripts/gpu_kit.sh
+	@python3 scripts/gpu_kit.py
 
 GPU_CHECK_SUITE ?= tests/test_stack.py tests/test_hang.py tests/test_install.py
 gpu-check: setup

@@ -1,6 +1,6 @@
 """Slims a wheel: drops the files that the GPU checks never read, rewrites RECORD.
 
-Used by ``scripts/gpu_kit.sh`` (``make gpu-kit``) to fit mani_skill and sapien,
+Used by ``scripts/gpu_kit.py`` (``make gpu-kit``) to fit mani_skill and sapien,
 with everything else the accelerator machine lacks, into carries of at most
 60 MiB. The result is still a wheel that ``pip install --no-deps --target``
 installs: same name and version, RECORD lists exactly the files kept, and
