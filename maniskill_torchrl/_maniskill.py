@@ -110,7 +110,7 @@ def _device_name(device: Any) -> str:
 
 def _render_backend_for(device: str) -> str:
     """The ``render_backend`` that asks ManiSkill for ``device``."""
-    return "'cpu'" if device == "cpu" else f"'gpu' (ManiSkill's default) or '{device}'"
+    return "'cpu'" if device == "cpu" else ("'gpu'" if device in ("cuda", "cuda:0") else f"'{device}'")
 
 
 def render_devices_in_use() -> dict[str, list[str]]:
@@ -131,16 +131,17 @@ def render_device_message(env_id: str, asked: str, in_use: dict[str, list[str]],
     others = {d: ids for d, ids in in_use.items() if d != asked}
     if others:
         held = "; ".join(
-            f'"{d}" (render_backend={_render_backend_for(d)}), for {", ".join(ids)}' for d, ids in others.items()
+            f'"{d}" (render_backend={_render_backend_for(d)}, for {", ".join(ids)})' for d, ids in others.items()
         )
         where = f"this process already renders on {held}"
-        same = f"render_backend={_render_backend_for(asked)} everywhere, or {_render_backend_for(next(iter(others)))}"
+        backends = sorted({_render_backend_for(asked), *map(_render_backend_for, others)})
+        same = ": " + " for all, or ".join(backends) + " for all"
     else:
         where = "this process already renders on another device (an env made with another render_backend is alive)"
-        same = "the same render_backend everywhere"
+        same = ""
     fixes = [
-        f"one render_backend for every ManiSkill env of this process ({same}; left out everywhere, it is "
-        "'gpu' on a machine with CUDA and the CPU elsewhere)",
+        f"the same render_backend for every ManiSkill env of this process{same} ('gpu', ManiSkill's default "
+        "and what leaving render_backend out picks, renders on CUDA where there is CUDA)",
         "close the other env and drop every reference to it (env.close(); del env) before making this one",
         "make this env in another process: a ParallelEnv worker, Collector(make_env, backend='process', ...), "
         "or a subprocess",

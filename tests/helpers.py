@@ -214,16 +214,18 @@ OWN_PROCESS = "MANISKILL_TORCHRL_TEST_OWN_PROCESS"  # set in a test's own proces
 
 
 def alone_where_cuda(request: Any) -> bool:
-    """For a test that renders with ``render_backend="cpu"``: on a machine with CUDA, where the other
-    tests' envs render with CUDA (ManiSkill's default) and SAPIEN renders on one device per
-    process, runs the test alone in a new pytest process and returns True: the caller then
-    returns (the new process passed). False where there is no CUDA (the CPU is the only render
-    device), or in that new process: the caller runs the test itself.
+    """For a test that renders with ``render_backend="cpu"``: on a machine where SAPIEN finds a CUDA
+    device, the other tests' envs render there (ManiSkill's default, ``"gpu"``) and SAPIEN renders
+    on one device per process, so this runs the test alone in a new pytest process and returns
+    True: the caller then returns (the new process passed). False where SAPIEN finds no CUDA
+    device (the CPU is every env's render device), or in that new process: the caller runs the
+    test itself.
 
-    Call it first, before any fixture or env of the test makes a ManiSkill env."""
-    import torch
+    Call it first, before any fixture or env of the test makes a ManiSkill env (it asks SAPIEN
+    for a CUDA device, as the library does before its first env: that loads Vulkan)."""
+    from maniskill_torchrl._maniskill import _no_cuda_render_device
 
-    if os.environ.get(OWN_PROCESS) == "1" or not torch.cuda.is_available():
+    if os.environ.get(OWN_PROCESS) == "1" or _no_cuda_render_device():
         return False
     env = dict(os.environ, **{OWN_PROCESS: "1", "PYTHONUNBUFFERED": "1"})
     cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "no:xdist", request.node.nodeid]
