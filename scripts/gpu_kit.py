@@ -195,7 +195,10 @@ def main() -> int:
         listing = "".join(f"  {f.stat().st_size / MIB:8.2f} MiB  {f.relative_to(folder)}\n" for f in files)
         (folder / "MANIFEST.txt").write_text(
             f"maniskill_torchrl GPU kit, part {name}, built {when} by scripts/gpu_kit.py, for python3.12, torch 2.11;\n"
-            "installed by scripts/gpu_check.py (pip install --no-index --no-deps --target).\nLeft out on purpose:\n"
+            "installed by scripts/gpu_check.py (pip install --no-index --no-deps --target).\n"
+            "On torch 2.11 torchrl 0.14.1's C extension (built for torch 2.14) does not load: prioritized replay is\n"
+            "unavailable there; the env, transforms, Collector, PPO and SAC with uniform replay work.\n"
+            "Left out on purpose:\n"
             + "".join(f"  - {e}\n" for e in EXCLUDED)
             + "Slimmed: mani_skill, sapien (*.dist-info/SLIMMED.txt)\n\n"
             + listing
