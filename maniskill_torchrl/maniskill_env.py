@@ -60,7 +60,11 @@ class ManiSkillEnv(ManiSkillWrapper):
             :class:`ManiSkillWrapper`.
         **maniskill_kwargs: passed to ``gym.make`` (``obs_mode``,
             ``control_mode``, ``sim_backend``, ``render_mode``,
-            ``max_episode_steps``...).
+            ``max_episode_steps``...). ``render_backend``: SAPIEN renders on one device
+            per process while any env that renders lives (``"cpu"`` and ``"cuda"`` are two):
+            an env asking for another device than the process's other envs raises a
+            ``RuntimeError`` that names both devices and the fixes (one ``render_backend``
+            per process; close and delete the other env; or make this one in another process).
 
     Examples:
         >>> from maniskill_torchrl import ManiSkillEnv
