@@ -278,7 +278,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--copy-s", type=float, default=90, help="bench_obs_copy --timing limit (90 s)")
     p.add_argument("--gpu-s", type=float, default=120, help="tests/gpu limit (120 s)")
     p.add_argument("--workers", type=int, default=os.cpu_count(), help="suite workers (cores)")
-    p.add_argument("--per-test-s", type=float, default=150, help="one test's limit (pytest-timeout, if there)")
+    p.add_argument("--per-test-s", type=float, default=240, help="one test's limit (pytest-timeout, if there)")
     p.add_argument("--suite", nargs="+", default=["tests"], help="what the suite stage runs (tests)")
     args = p.parse_args(argv)
     if args.local:  # a dry run here: what the command line leaves at its default
