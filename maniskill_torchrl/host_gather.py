@@ -10,8 +10,10 @@ observations, 17 for rgb).
 
 Why a flat byte buffer with typed views, not ``TensorDict(...).to(device, non_blocking=True)``:
 TensorDict's ``to`` copies leaf by leaf (one transfer each), and its consolidated form allocates
-a new host buffer per call. The byte buffer is laid out once (each leaf's offset, aligned to 16
-bytes), written with plain host copies (``copy_`` casts and handles strides) and sent whole.
+a new host buffer per call. The byte buffer is laid out once (leaves grouped by dtype, each at a
+multiple of its element size), written with plain host copies (``copy_`` casts and handles
+strides) and sent whole; the device leaves are one typed view per dtype and one strided view per
+leaf of that one copy.
 Every device leaf handed out is a view of that step's own fresh device copy, never of a buffer
 written again later: a rollout the user keeps stays as it was.
 
@@ -39,6 +41,8 @@ class HostGather:
     pictures) are copied there (device to device, never through the host); other values pass
     as they are. The layout is learnt from the first calls and grows when new leaves appear
     (a step's reward after a reset's observation): the buffers are made again then, not per call.
+    Leaves are grouped by dtype, so that each call takes one typed view of the copy per dtype
+    and one strided view per leaf.
 
     Args:
         device: the accelerator the outputs go to.
@@ -49,8 +53,9 @@ class HostGather:
         self._pin = self.device.type == "cuda"
         module = torch.get_device_module(self.device) if self.device.type != "cpu" else None
         self._event_type = getattr(module, "Event", None)
-        self._slots: dict[tuple, tuple[int, int, torch.dtype, torch.Size]] = {}
-        self._size = 0
+        # path -> (dtype, shape, stride, offset in elements of dtype)
+        self._slots: dict[tuple, tuple[torch.dtype, torch.Size, tuple, int]] = {}
+        self._dtypes: tuple[torch.dtype, ...] = ()
         self._buffers: list[tuple[torch.Tensor, dict, Any]] = []
         self._turn = 0
         self._pairs: list[tuple[torch.Tensor, torch.Tensor]] = []
@@ -64,8 +69,9 @@ class HostGather:
         slots = self._slots
         for _, _, path, value in pending:
             slot = slots.get(path)
-            if slot is None or slot[2] != value.dtype or slot[3] != value.shape:
+            if slot is None or slot[0] != value.dtype or slot[1] != value.shape:
                 self._grow(pending)
+                slots = self._slots
                 break
         buf, views, event = self._buffers[self._turn]
         self._turn ^= 1
@@ -73,12 +79,14 @@ class HostGather:
             event.synchronize()  # the copy out of this buffer two calls ago has ended
         for _, _, path, value in pending:
             views[path].copy_(value)
-        moved = buf.to(self.device, non_blocking=self._pin)
+        moved = buf.to(self.device, non_blocking=self._pin, copy=True)
         if event is not None:
             event.record()
+        typed = {dtype: moved.view(dtype) for dtype in self._dtypes}
         pairs = []
         for container, key, path, _ in pending:
-            leaf = _typed(moved, slots[path])
+            dtype, shape, stride, offset = slots[path]
+            leaf = typed[dtype].as_strided(shape, stride, offset)
             container[key] = leaf
             pairs.append((leaf, views[path]))
         self._pairs = pairs
@@ -113,24 +121,31 @@ class HostGather:
         for _, _, event in self._buffers:
             if event is not None:
                 event.synchronize()  # a copy may still read the old buffers
-        slots = self._slots
-        for _, _, path, value in pending:
-            slots[path] = (0, value.numel() * value.element_size(), value.dtype, value.shape)
-        offset = 0
-        for path, (_, nbytes, dtype, shape) in slots.items():
-            slots[path] = (offset, nbytes, dtype, shape)
-            offset += -(-nbytes // _ALIGN) * _ALIGN
-        self._size = offset
+        leaves = {path: (dtype, shape) for path, (dtype, shape, _, _) in self._slots.items()}
+        leaves.update({path: (value.dtype, value.shape) for _, _, path, value in pending})
+        # Widest dtypes first: every leaf starts at a multiple of its element size.
+        order = sorted(leaves, key=lambda path: -leaves[path][0].itemsize)
+        slots, offset = {}, 0
+        for path in order:
+            dtype, shape = leaves[path]
+            slots[path] = (dtype, shape, _contiguous_strides(shape), offset // dtype.itemsize)
+            offset += shape.numel() * dtype.itemsize
+        self._slots = slots
+        self._dtypes = tuple(dict.fromkeys(dtype for dtype, _ in leaves.values()))
+        size = max(-(-offset // _ALIGN) * _ALIGN, _ALIGN)  # a whole number of every element size
         self._buffers = []
         for _ in range(2):
-            buf = torch.empty(max(offset, 1), dtype=torch.uint8, pin_memory=self._pin)
-            views = {path: _typed(buf, slot) for path, slot in slots.items()}
+            buf = torch.empty(size, dtype=torch.uint8, pin_memory=self._pin)
+            typed = {dtype: buf.view(dtype) for dtype in self._dtypes}
+            views = {path: typed[d].as_strided(shape, stride, off) for path, (d, shape, stride, off) in slots.items()}
             event = self._event_type() if self._event_type is not None else None
             self._buffers.append((buf, views, event))
         self._turn = 0
 
 
-def _typed(buf: torch.Tensor, slot: tuple[int, int, torch.dtype, torch.Size]) -> torch.Tensor:
-    """The leaf of ``slot`` (offset, bytes, dtype, shape) in the byte buffer ``buf``: a view."""
-    offset, nbytes, dtype, shape = slot
-    return buf[offset : offset + nbytes].view(dtype).view(shape)
+def _contiguous_strides(shape: torch.Size) -> tuple[int, ...]:
+    strides, step = [], 1
+    for n in reversed(shape):
+        strides.append(step)
+        step *= max(n, 1)
+    return tuple(reversed(strides))
