@@ -4,6 +4,7 @@ under the CUDA double in ``tests/cuda_device_cases.py``; here the target is the 
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from maniskill_torchrl.host_gather import HostGather
@@ -58,3 +59,25 @@ def _get(tree: dict, path: tuple):
     for k in path:
         tree = tree[k]
     return tree
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (runs in the GPU check)")
+def test_cuda_pinned_buffers_one_copy_and_events():
+    """On CUDA: pinned host buffers, an event per buffer waited for before its reuse, device leaves
+    on the GPU (pictures already there copied on it) that later calls never write into."""
+    device = torch.device("cuda", torch.cuda.current_device())
+    gather = HostGather(device)
+    kept = []
+    for i in range(6):
+        source = _step(i)
+        source["picture"] = picture = torch.full((1, 8, 8, 3), i, dtype=torch.uint8, device=device)
+        out = gather(source)
+        assert out["picture"].data_ptr() != picture.data_ptr()  # a copy on the device
+        kept.append((out, {k: v.clone() for k, v in source.items() if isinstance(v, torch.Tensor)}))
+    assert all(buf.is_pinned() for buf, _, _ in gather._buffers)
+    assert all(event is not None for _, _, event in gather._buffers)
+    torch.cuda.synchronize()
+    for out, source in kept:
+        for key, want in source.items():
+            got = out[key]
+            assert got.device == device and got.dtype == want.dtype and torch.equal(got.cpu(), want.cpu()), key
