@@ -274,7 +274,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sweep-n", type=int, nargs="+", default=[1, 4, 8, 15])
     p.add_argument("--sweep-seconds", type=float, default=2.0, help="timed collection per run (2)")
     p.add_argument("--startup-limit", type=float, default=40, help="start-up limit of one benchmark child (40 s)")
-    p.add_argument("--sweep-s", type=float, default=110, help="sweep limit (110 s)")
+    p.add_argument("--sweep-s", type=float, default=120, help="sweep limit (120 s)")
     p.add_argument("--copy-s", type=float, default=90, help="bench_obs_copy --timing limit (90 s)")
     p.add_argument("--gpu-s", type=float, default=120, help="tests/gpu limit (120 s)")
     p.add_argument("--workers", type=int, default=os.cpu_count(), help="suite workers (cores)")
