@@ -228,7 +228,7 @@ def alone_where_cuda(request: Any) -> bool:
     if os.environ.get(OWN_PROCESS) == "1" or _no_cuda_render_device():
         return False
     env = dict(os.environ, **{OWN_PROCESS: "1", "PYTHONUNBUFFERED": "1"})
-    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "no:xdist", request.node.nodeid]
+    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", request.node.nodeid]
     proc = subprocess.run(cmd, cwd=request.config.rootpath, env=env, capture_output=True, text=True, timeout=TIMEOUT_S)
     _check(proc)
     assert "1 passed" in proc.stdout, proc.stdout[-3000:]
