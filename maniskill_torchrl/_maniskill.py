@@ -131,7 +131,8 @@ def render_device_message(env_id: str, asked: str, in_use: dict[str, list[str]],
     others = {d: ids for d, ids in in_use.items() if d != asked}
     if others:
         held = "; ".join(
-            f'"{d}" (render_backend={_render_backend_for(d)}, for {", ".join(ids)})' for d, ids in others.items()
+            f'"{d}" (render_backend={_render_backend_for(d)}, for {", ".join(dict.fromkeys(ids))})'
+            for d, ids in others.items()
         )
         where = f"this process already renders on {held}"
         backends = sorted({_render_backend_for(asked), *map(_render_backend_for, others)})
