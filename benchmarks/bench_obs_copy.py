@@ -168,7 +168,8 @@ def count_transfers(size: int, steps: int) -> int:
     for name, c in rows:
         cells = [f"{c[k]:.0f} ({c[k + '_bytes'] / 1024:.1f} KiB)" for k in kinds] + [f"{c[k]:.0f}" for k in waits]
         print(f"| {name} | " + " | ".join(cells) + " |")
-    print("(device->host and its sync in the library's rows: the action, which the CPU sim takes on the host)")
+    print("(device->host and its sync: the picture for device='cpu'; the action, which the CPU sim takes on the host,")
+    print(" for the device. Event waits: for the copy out of a host buffer before its reuse, long ended by then.)")
     return 0
 
 
