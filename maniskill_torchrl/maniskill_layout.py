@@ -32,8 +32,10 @@ class ManiSkillLayout:
 
     Reads the host's ``_env``, ``_copies``, ``_sim_device``, ``_sim_mode``, ``batch_size``,
     ``device`` and ``action_keys``; sets ``_moves`` / ``_copy_out`` (whether outputs are copied
-    to ``device``), the specs and, for ``_step``'s action check, ``_action_names`` (the
-    agents of a Dict action space, else None) and ``_action_shapes``.
+    to ``device``) and ``_gather`` (the CPU sim feeding an accelerator: a
+    :class:`~maniskill_torchrl.host_gather.HostGather` that sends each step up in one copy, else
+    None), again at every :meth:`to`; the specs and, for ``_step``'s action check,
+    ``_action_names`` (the agents of a Dict action space, else None) and ``_action_shapes``.
 
     An unbatched env (``batch_size=[]``, one ManiSkill env) has the specs of the batch-``[1]``
     env with that dim squeezed out, as :class:`~maniskill_torchrl.transforms.CPUUnbatch` gives
