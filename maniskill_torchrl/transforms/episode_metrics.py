@@ -120,7 +120,9 @@ class EpisodeMetrics(Transform):
         self._reset_keys = list(parent.reset_keys)
         # Where the base env keeps the host values of what it moved up (a CPU-sim env on an
         # accelerator): the numpy summation reads rewards and flags there, not from the device.
-        self._host_value = getattr(_base_env(parent), "host_value", None)
+        # Asked of the class: batched envs hand unknown attributes on to their sub-envs.
+        base = _base_env(parent)
+        self._host_value = base.host_value if hasattr(type(base), "host_value") else None
         return self._stats
 
     def to(self, *args, **kwargs) -> EpisodeMetrics:
