@@ -12,7 +12,7 @@ closing. A mixin, not a helper object: its methods stay methods of the wrapper.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
 import torch
@@ -23,6 +23,9 @@ from maniskill_torchrl.cpu_vector import CPUVectorEnv
 from maniskill_torchrl.errors import action_error, check_info_keys, checked_device
 from maniskill_torchrl.host_gather import HostGather
 from maniskill_torchrl.specs import env_specs
+
+if TYPE_CHECKING:
+    from torchrl.envs import EnvBase
 
 __all__ = ["ManiSkillLayout"]
 
@@ -76,7 +79,7 @@ class ManiSkillLayout:
             self._obs_leaf = _leaf(device, unbatched, self._copy_out)
             self._info_leaf = _leaf(device, unbatched, True)  # infos may alias ManiSkill's (elapsed_steps)
 
-    def to(self, device: Any) -> ManiSkillLayout:
+    def to(self, device: Any) -> EnvBase:
         """This env with its outputs on ``device`` from now on, and its actions taken there.
 
         Every output (steps, resets, ``"pixels"``, :meth:`render`, infos, :meth:`get_state`)
