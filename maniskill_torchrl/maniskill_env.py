@@ -140,13 +140,3 @@ class ManiSkillEnv(ManiSkillWrapper):
     @property
     def env_id(self) -> str:
         return self._env_id
-
-    def close(self, *, raise_if_closed: bool = True) -> None:
-        """Closes the ManiSkill env and lets it go: once this env is closed, nothing of it holds the
-        ManiSkill env (TorchRL keeps the constructor's ``env`` argument otherwise), so that its
-        scene and SAPIEN's render engine are freed with the last reference to the ManiSkill env,
-        even while this closed env is still referenced."""
-        super().close(raise_if_closed=raise_if_closed)
-        kwargs = self.__dict__.get("_constructor_kwargs")
-        if isinstance(kwargs, dict):
-            kwargs.pop("env", None)

@@ -325,6 +325,9 @@ class ManiSkillWrapper(ManiSkillLayout, SavedStates, WorkerRepeat, EnvWrapper):
 
     # -------------------------------------------------------------- misc
     def close(self, *, raise_if_closed: bool = True) -> None:
+        """Closes the ManiSkill env and lets it go: nothing of this closed env holds it any more
+        (TorchRL keeps the constructor's ``env`` argument otherwise), so its scene and SAPIEN's
+        render engine are freed with the last reference to it elsewhere."""
         env = self.__dict__.get("_env")
         if env is not None and not isinstance(env, ClosedEnv):
             # A stand-in that says the env is closed: a closed ManiSkill sim fails with AttributeErrors.
@@ -332,6 +335,9 @@ class ManiSkillWrapper(ManiSkillLayout, SavedStates, WorkerRepeat, EnvWrapper):
             self._workers = None
             env.close()
         super().close(raise_if_closed=raise_if_closed)
+        kwargs = self.__dict__.get("_constructor_kwargs")
+        if isinstance(kwargs, dict):
+            kwargs.pop("env", None)
 
     @staticmethod
     def _env_name(env: Any) -> str:
