@@ -16,6 +16,8 @@ skipped and says so; one that fails does not stop the others):
     copy   benchmarks/bench_obs_copy.py --timing (device_copy.json)
     suite  pytest tests (without registry, docs, gpu), xdist -n cores --dist worksteal, JUnit
     gpu    pytest tests/gpu, only with SAPIEN's PhysX GPU library (it cannot be downloaded there)
+    ceilings  benchmarks/bench_ceilings.py (only when named in --stages): topology, one raw env, N
+           independent raw-env processes and N in lockstep, the CPU sim's ceilings (ceilings.json)
 
 $OUT gets summary.json (written here, also when a stage fails), gpu_check.log, sweep.json,
 device_copy.json, suite.xml, gpu.xml. Exit 0 when no stage failed, 2 when a kit part is missing.
@@ -277,6 +279,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sweep-s", type=float, default=120, help="sweep limit (120 s)")
     p.add_argument("--copy-s", type=float, default=90, help="bench_obs_copy --timing limit (90 s)")
     p.add_argument("--gpu-s", type=float, default=120, help="tests/gpu limit (120 s)")
+    p.add_argument("--ceilings-s", type=float, default=150, help="bench_ceilings limit (150 s)")
     p.add_argument("--workers", type=int, default=os.cpu_count(), help="suite workers (cores)")
     p.add_argument("--per-test-s", type=float, default=240, help="one test's limit (pytest-timeout, if there)")
     p.add_argument("--suite", nargs="+", default=["tests"], help="what the suite stage runs (tests)")
@@ -290,6 +293,8 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     for f in ("summary.json", "gpu_check.log", "sweep.json", "device_copy.json", "suite.xml", "gpu.xml"):
+        (out / f).unlink(missing_ok=True)
+    for f in ("ceilings.json",):
         (out / f).unlink(missing_ok=True)
     LOG = open(out / "gpu_check.log", "w")
     env = dict(os.environ, PYTHONUNBUFFERED="1", RL_WARNINGS="0")
@@ -351,7 +356,9 @@ def main(argv: list[str] | None = None) -> int:
         if name == "gpu" and physx:
             stages[name] = {"status": "skipped", "note": physx}
             continue
-        limit = {"sweep": args.sweep_s, "copy": args.copy_s, "gpu": args.gpu_s}.get(name, left)
+        limit = {"sweep": args.sweep_s, "copy": args.copy_s, "gpu": args.gpu_s, "ceilings": args.ceilings_s}.get(
+            name, left
+        )
         limit = min(limit, left)
         if limit < 30:
             stages[name] = {"status": "skipped", "note": f"{left:.0f}s left of the {args.budget:.0f}s budget"}
@@ -371,9 +378,11 @@ def main(argv: list[str] | None = None) -> int:
                                f"--junitxml={out / 'suite.xml'}"]
             + (["-n", str(args.workers), "--dist", "worksteal"] if args.workers > 1 and _has(py, env, "xdist") else []),
             "gpu": pytest + ["tests/gpu", f"--junitxml={out / 'gpu.xml'}"],
+            "ceilings": [py, "benchmarks/bench_ceilings.py", "--n", *map(str, args.sweep_n), "--seconds", "3",
+                         "--rounds", "2", "--budget", str(max(limit - 45, 10)), "--out", str(out / "ceilings.json")],
         }.get(name)  # fmt: skip
         if cmd is None:
-            stages[name] = {"status": "failed", "note": "unknown stage (sweep copy suite gpu)"}
+            stages[name] = {"status": "failed", "note": "unknown stage (sweep copy suite gpu ceilings)"}
             continue
         log(f"stage {name} (limit {limit:.0f}s): {' '.join(cmd)}")
         st, rc, s = run(cmd, limit, env)
@@ -386,6 +395,9 @@ def main(argv: list[str] | None = None) -> int:
             stages[name].update(status="skipped", note="bench_obs_copy.py has no --timing mode yet")
         elif name == "copy" and (out / "device_copy.json").exists():
             stages[name]["result"] = json.loads((out / "device_copy.json").read_text())
+        elif name == "ceilings" and (out / "ceilings.json").exists():
+            ceilings = json.loads((out / "ceilings.json").read_text())
+            stages[name]["result"] = {k: ceilings.get(k) for k in ("topology", "summary", "stopped")}
         elif name in ("suite", "gpu"):
             stages[name].update(junit(out / f"{name}.xml"))
         log(f"stage {name}: {stages[name]['status']} (exit {rc}) in {s}s")
