@@ -52,11 +52,13 @@ _EXPORTS = {
     "EnvStates": "maniskill_torchrl.transforms",
     "EpisodeMetrics": "maniskill_torchrl.transforms",
     "IgnoreTerminations": "maniskill_torchrl.transforms",
+    "RenderDeviceError": "maniskill_torchrl._maniskill",
 }
 
 __all__ = [*_EXPORTS, "__version__"]
 
 if TYPE_CHECKING:
+    from maniskill_torchrl._maniskill import RenderDeviceError
     from maniskill_torchrl.cpu_vector import CPUVectorEnv
     from maniskill_torchrl.env import ManiSkillEnv, ManiSkillWrapper
     from maniskill_torchrl.transforms import (
