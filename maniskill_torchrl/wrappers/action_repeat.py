@@ -2,9 +2,10 @@
 
 Change ``from mani_skill.utils.wrappers import ActionRepeatWrapper`` to
 ``from maniskill_torchrl.wrappers import ActionRepeatWrapper``; the batched torch
-outputs stay the same. The inner steps are merged by
-:func:`maniskill_torchrl.masked_merge.keep_where`, the rule of the TorchRL
-``ActionRepeat`` transform, directly on ManiSkill's dicts.
+outputs stay the same. Each step is ``maniskill_torchrl._action_repeat.repeat_step``:
+the inner steps merged by :func:`maniskill_torchrl.masked_merge.keep_where`, the rule
+of the TorchRL ``ActionRepeat`` transform, directly on ManiSkill's dicts (the CPU
+engine's workers repeat actions with the same function).
 """
 
 from __future__ import annotations
@@ -19,33 +20,11 @@ from mani_skill.utils.wrappers.action_repeat import (
 )
 from mani_skill.utils.wrappers.gymnasium import CPUGymWrapper as _ManiSkillCPUGymWrapper
 
-from maniskill_torchrl.masked_merge import check_repeat, keep_where
+from maniskill_torchrl._action_repeat import repeat_step
+from maniskill_torchrl.masked_merge import check_repeat
 from maniskill_torchrl.wrappers._common import require_maniskill_env
 
 __all__ = ["ActionRepeatWrapper"]
-
-
-def _merge(acc: Any, new: Any, running: torch.Tensor | None, batch: int) -> Any:
-    """``new`` for the envs in ``running`` (all if ``None``), ``acc`` for the others; a new object.
-
-    As ManiSkill's wrapper: batched tensors (leading dim ``batch``) are merged per
-    env, dicts key by key (``acc``'s keys first), and any other value (python
-    scalars, unbatched tensors) is the last inner step's.
-    """
-    if isinstance(new, dict) and isinstance(acc, dict):
-        out = dict(acc)
-        for k, v in new.items():
-            out[k] = _merge(acc[k], v, running, batch) if k in acc else v
-        return out
-    if (
-        running is not None
-        and isinstance(new, torch.Tensor)
-        and isinstance(acc, torch.Tensor)
-        and new.ndim
-        and new.shape[0] == batch
-    ):
-        return keep_where(running, new, acc)
-    return new
 
 
 class ActionRepeatWrapper(_ManiSkillActionRepeatWrapper):
@@ -114,35 +93,4 @@ class ActionRepeatWrapper(_ManiSkillActionRepeatWrapper):
         return self.env.unwrapped
 
     def step(self, action: Any) -> tuple[Any, torch.Tensor, torch.Tensor, torch.Tensor, dict]:
-        first = self.env.step(action)
-        if self.repeat == 1:
-            return first
-        obs, reward, terminated, truncated, info = first
-        if not isinstance(terminated, torch.Tensor):
-            raise TypeError(
-                "ActionRepeatWrapper needs ManiSkill's batched torch outputs, got terminated of "
-                f"type {type(terminated).__name__}. Apply it before CPUGymWrapper or any wrapper "
-                "that converts to numpy."
-            )
-        done = terminated | truncated
-        # One host sync per inner step: the number of envs done.
-        n_done = int(done.sum())
-        if n_done == done.numel():
-            return first
-        batch = done.shape[0]
-        running = ~done if n_done else None
-        for _ in range(self.repeat - 1):
-            o, r, te, tr, inf = self.env.step(action)
-            obs, info = _merge(obs, o, running, batch), _merge(info, inf, running, batch)
-            if running is None:  # every env ran: a plain fold
-                reward, terminated, truncated = reward + r, terminated | te, truncated | tr
-            else:
-                reward = keep_where(running, reward + r, reward)
-                terminated = keep_where(running, terminated | te, terminated)
-                truncated = keep_where(running, truncated | tr, truncated)
-            done = terminated | truncated
-            n_done = int(done.sum())
-            if n_done == done.numel():
-                break
-            running = ~done if n_done else None
-        return obs, reward, terminated, truncated, info
+        return repeat_step(self.env, action, self.repeat)
