@@ -46,7 +46,7 @@ prefer_spawn()
 _EXPORTS = {
     "ManiSkillEnv": "maniskill_torchrl.env",
     "ManiSkillWrapper": "maniskill_torchrl.env",
-    "CPUVectorEnv": "maniskill_torchrl.cpu_vector",
+    "CPUVectorEnv": "maniskill_torchrl.engines.cpu_vector",
     "ActionRepeat": "maniskill_torchrl.transforms",
     "CPUUnbatch": "maniskill_torchrl.transforms",
     "EnvStates": "maniskill_torchrl.transforms",
@@ -59,7 +59,7 @@ __all__ = [*_EXPORTS, "__version__"]
 
 if TYPE_CHECKING:
     from maniskill_torchrl._maniskill import RenderDeviceError
-    from maniskill_torchrl.cpu_vector import CPUVectorEnv
+    from maniskill_torchrl.engines.cpu_vector import CPUVectorEnv
     from maniskill_torchrl.env import ManiSkillEnv, ManiSkillWrapper
     from maniskill_torchrl.transforms import (
         ActionRepeat,

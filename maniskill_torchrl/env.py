@@ -1,7 +1,7 @@
 """ManiSkill 3 tasks as native TorchRL environments: the public home of both env classes.
 
 - :class:`ManiSkillWrapper` (``maniskill_wrapper.py``): wraps a ManiSkill env made with
-  ``gym.make`` (or a :class:`~maniskill_torchrl.cpu_vector.CPUVectorEnv`).
+  ``gym.make`` (or a :class:`~maniskill_torchrl.CPUVectorEnv`).
 - :class:`ManiSkillEnv` (``maniskill_env.py``): makes the ManiSkill env from a task id, then wraps it.
 
 ``from maniskill_torchrl.env import ManiSkillEnv, ManiSkillWrapper`` keeps working from here.

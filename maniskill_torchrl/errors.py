@@ -19,7 +19,6 @@ from maniskill_torchrl._maniskill import (
     ignores_terminations,
     maniskill_base_env,
 )
-from maniskill_torchrl.cpu_vector import CPUVectorEnv
 
 __all__ = [
     "checked_base_env",
@@ -34,13 +33,15 @@ __all__ = [
 
 
 def checked_base_env(env: Any, *, from_pixels: bool, pixels_only: bool) -> Any:
-    """The ManiSkill env (or :class:`CPUVectorEnv`) under ``env``, after checking the wrapper's arguments."""
+    """The ManiSkill env (or the engine, :class:`~maniskill_torchrl.CPUVectorEnv`) under ``env``, after
+    checking the wrapper's arguments. An engine is known by the capabilities it declares
+    (``maniskill_torchrl.engines``): this module does not import it."""
     if env is None:
         raise TypeError(
             "ManiSkillWrapper needs a ManiSkill env: ManiSkillWrapper(gym.make('PickCube-v1')) "
             "or ManiSkillEnv('PickCube-v1')."
         )
-    base = env if isinstance(env, CPUVectorEnv) else maniskill_base_env(env)
+    base = env if _is_engine(env) else maniskill_base_env(env)
     if base is None:
         raise TypeError(
             f"ManiSkillWrapper wraps ManiSkill 3 envs only, got {type(env).__name__} "
@@ -58,7 +59,8 @@ def checked_base_env(env: Any, *, from_pixels: bool, pixels_only: bool) -> Any:
             "ManiSkillVectorEnv(env, auto_reset=False), or use ManiSkillEnv(...)."
         )
     freq = getattr(base, "reconfiguration_freq", 0) or 0
-    if base.num_envs > 1 and freq and not isinstance(base, CPUVectorEnv) and not ignores_terminations(env):
+    partial = getattr(base, "reconfigures_partially", False)
+    if base.num_envs > 1 and freq and not partial and not ignores_terminations(env):
         raise ValueError(
             f"reconfiguration_freq={freq} with num_envs={base.num_envs}: ManiSkill cannot reconfigure "
             "some of its envs only, and TorchRL resets each done env on its own (partial resets), "
@@ -74,6 +76,12 @@ def checked_base_env(env: Any, *, from_pixels: bool, pixels_only: bool) -> Any:
             f"from_pixels=True needs an env made with render_mode='rgb_array' (got render_mode={base.render_mode!r})."
         )
     return base
+
+
+def _is_engine(env: Any) -> bool:
+    """Whether ``env`` is an engine of ``maniskill_torchrl.engines`` wrapped as is: it declares its
+    capabilities (a ManiSkill ``BaseEnv`` and gym wrappers declare none)."""
+    return getattr(env, "seeds_partial_resets", False) is True and getattr(env, "unwrapped", None) is env
 
 
 def checked_device(device: Any, sim_device: torch.device) -> torch.device:

@@ -1,5 +1,6 @@
-""":class:`ManiSkillEnv`: makes a ManiSkill 3 task (``gym.make``, or a :class:`CPUVectorEnv`, one
-process per env, for several CPU-sim envs) and wraps it as a TorchRL env."""
+""":class:`ManiSkillEnv`: makes a ManiSkill 3 task (``gym.make``, or a
+:class:`~maniskill_torchrl.CPUVectorEnv`, one process per env, for several CPU-sim envs) and wraps
+it as a TorchRL env. The factory picks the engine: the only env module that imports one."""
 
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ from maniskill_torchrl._maniskill import (
     registered_env_ids,
     similar_env_ids,
 )
-from maniskill_torchrl.cpu_vector import CPUVectorEnv
+from maniskill_torchrl.engines.cpu_vector import CPUVectorEnv
 from maniskill_torchrl.errors import check_frame_skip, checked_batch_size
 from maniskill_torchrl.maniskill_wrapper import ManiSkillWrapper
 
@@ -38,7 +39,7 @@ class ManiSkillEnv(ManiSkillWrapper):
             simulator; on the CPU sim (``sim_backend="cpu"``, or ``"auto"``
             without CUDA), which holds one env per process, ``num_envs > 1``
             runs one process per env, sub-env 0 in this one and the others in
-            workers (:class:`~maniskill_torchrl.cpu_vector.CPUVectorEnv`, gymnasium's
+            workers (:class:`~maniskill_torchrl.CPUVectorEnv`, gymnasium's
             ``AsyncVectorEnv`` underneath), with the same keys, specs and dtypes.
         from_pixels (bool): add ``"pixels"`` (sets ``render_mode="rgb_array"``).
         inference_mode (bool, optional): run ManiSkill under :func:`torch.inference_mode`

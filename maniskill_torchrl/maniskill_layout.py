@@ -19,7 +19,6 @@ import torch
 from tensordict import TensorDictBase
 
 from maniskill_torchrl._maniskill import render_frame_shape, wrapper_attr
-from maniskill_torchrl.cpu_vector import CPUVectorEnv
 from maniskill_torchrl.errors import action_error, check_info_keys, checked_device
 from maniskill_torchrl.host_gather import HostGather
 from maniskill_torchrl.specs import env_specs
@@ -98,7 +97,9 @@ class ManiSkillLayout:
         act_space = wrapper_attr(env, "single_action_space")
         frame_shape = None
         if self._from_pixels:
-            frame_shape = base.render_frame_shape() if isinstance(base, CPUVectorEnv) else render_frame_shape(base)
+            # An engine (CPUVectorEnv) asks one of its sub-envs; a ManiSkill env has no such method.
+            engine_frame_shape = getattr(base, "render_frame_shape", None)
+            frame_shape = engine_frame_shape() if callable(engine_frame_shape) else render_frame_shape(base)
         specs = env_specs(
             obs_space,
             act_space,

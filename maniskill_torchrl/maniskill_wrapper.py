@@ -23,7 +23,6 @@ from torchrl.data.utils import DEVICE_TYPING
 
 from maniskill_torchrl._maniskill import canonical_device, reuses_buffers
 from maniskill_torchrl._private import EnvWrapper, classproperty, new_tensordict
-from maniskill_torchrl.cpu_vector import CPUVectorEnv
 from maniskill_torchrl.errors import ClosedEnv, check_frame_skip, checked_base_env, checked_batch_size, checked_device
 from maniskill_torchrl.maniskill_layout import ManiSkillLayout
 from maniskill_torchrl.saved_states import SavedStates, check_set_state
@@ -78,18 +77,23 @@ class ManiSkillWrapper(ManiSkillLayout, SavedStates, WorkerRepeat, EnvWrapper):
     from ``s``. ``env.reset(seed=s)`` seeds one reset directly. Partial resets
     (a ``"_reset"`` mask that is not all True) reset only those envs through
     ``options={"env_idx": ...}``: unseeded on the GPU sim, as ManiSkill does; on a
-    :class:`~maniskill_torchrl.cpu_vector.CPUVectorEnv` seeded with the next draw
+    :class:`~maniskill_torchrl.CPUVectorEnv` seeded with the next draw
     ``d`` (sub-env ``i`` gets ``d + i``), so that CPU runs stay reproducible from
     ``s`` whatever each sub-env's process's global torch RNG holds.
 
-    Several CPU envs: wrap a :class:`~maniskill_torchrl.cpu_vector.CPUVectorEnv`
+    Several CPU envs: wrap a :class:`~maniskill_torchrl.CPUVectorEnv`
     (``ManiSkillEnv(env_id, num_envs=N)`` does it on the CPU sim): one process per
     env (sub-env 0 in this one), the same batch ``[N]``, keys, specs and dtypes as the GPU sim.
 
     Partial steps: ManiSkill steps all of its envs together (the GPU sim, and the sub-envs of a
     ``CPUVectorEnv``), so a ``"_step"`` mask is not honoured (a :class:`~torchrl.envs.ParallelEnv`
     of single CPU envs honours it). On a ``CPUVectorEnv``, :class:`~maniskill_torchrl.transforms.ActionRepeat`
-    has the sub-envs repeat each action themselves (``maniskill_torchrl.worker_repeat``).
+    has the sub-envs repeat each action themselves (:meth:`request_worker_repeat`).
+
+    The wrapper never imports the CPU engine (``maniskill_torchrl.engines``): it reads the
+    capabilities an engine declares (``returns_copies``, ``runs_inference_mode``,
+    ``seeds_partial_resets``, ``reconfigures_partially``, ``repeats_actions``,
+    ``render_frame_shape()``), which a ManiSkill ``BaseEnv`` does not have.
 
     Args:
         env: a ManiSkill env, ``gym.make("PickCube-v1", ...)``, possibly
@@ -119,7 +123,7 @@ class ManiSkillWrapper(ManiSkillLayout, SavedStates, WorkerRepeat, EnvWrapper):
             inference mode, after this env used it raises ``"Inplace update to inference
             tensor outside InferenceMode"`` (PickCube-v1's ``reset`` does): make those calls
             under ``torch.inference_mode()``. A
-            :class:`~maniskill_torchrl.cpu_vector.CPUVectorEnv`'s sub-envs always use it (only
+            :class:`~maniskill_torchrl.CPUVectorEnv`'s sub-envs always use it (only
             numpy copies leave them), whatever this says.
         batch_size (list of int, optional): ``[num_envs]`` (the default), or ``[]`` for one
             ManiSkill env (``num_envs=1``) as an unbatched TorchRL env: specs and entries without
@@ -177,13 +181,14 @@ class ManiSkillWrapper(ManiSkillLayout, SavedStates, WorkerRepeat, EnvWrapper):
         self._sim_device = canonical_device(base.device)
         device = checked_device(device, self._sim_device)
         batch_size = checked_batch_size(batch_size, base.num_envs)
-        # A CPUVectorEnv's sub-envs run inference mode themselves and return numpy copies.
-        self._inference = bool(inference_mode) and not isinstance(base, CPUVectorEnv)
+        # An engine's sub-envs (CPUVectorEnv) run inference mode themselves and return copies.
+        self._inference = bool(inference_mode) and not getattr(base, "runs_inference_mode", False)
         self._sim_mode = torch.inference_mode if self._inference else contextlib.nullcontext
         # What leaves this env is copied where ManiSkill may overwrite it later (the GPU sim's
         # buffers, sapien_cuda pictures) or made it under inference mode; nowhere else.
-        self._copies = self._inference or reuses_buffers(base)
-        self._seeds_partial_resets = isinstance(base, CPUVectorEnv)
+        # An engine that returns fresh copies (CPUVectorEnv) needs none.
+        self._copies = self._inference or (not getattr(base, "returns_copies", False) and reuses_buffers(base))
+        self._seeds_partial_resets = getattr(base, "seeds_partial_resets", False)
         self._init_worker_repeat(env, base)
         self._init_layout(
             device=device,
@@ -215,8 +220,9 @@ class ManiSkillWrapper(ManiSkillLayout, SavedStates, WorkerRepeat, EnvWrapper):
         return None
 
     @property
-    def base_env(self) -> BaseEnv | CPUVectorEnv:
-        """The ManiSkill ``BaseEnv`` (``env.unwrapped``), or the wrapped :class:`CPUVectorEnv`."""
+    def base_env(self) -> BaseEnv | Any:
+        """The ManiSkill ``BaseEnv`` (``env.unwrapped``), or the wrapped engine
+        (:class:`~maniskill_torchrl.CPUVectorEnv`)."""
         return self._env.unwrapped
 
     @property

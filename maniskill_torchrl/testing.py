@@ -71,7 +71,7 @@ def check_maniskill_env(
     import gymnasium as gym
     from torchrl.envs.utils import check_env_specs
 
-    from maniskill_torchrl.cpu_vector import CPUVectorEnv
+    from maniskill_torchrl.engines.cpu_vector import CPUVectorEnv
     from maniskill_torchrl.maniskill_env import ManiSkillEnv
 
     where = f"check_maniskill_env({env_id!r}, num_envs={num_envs})"

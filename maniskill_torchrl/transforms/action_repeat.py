@@ -34,7 +34,7 @@ class ActionRepeat(Transform):
 
     - on the batched CPU env (``ManiSkillEnv(env_id, num_envs=N)`` on the CPU
       sim, a :class:`~maniskill_torchrl.ManiSkillWrapper` of a
-      :class:`~maniskill_torchrl.cpu_vector.CPUVectorEnv`), when this transform
+      :class:`~maniskill_torchrl.CPUVectorEnv`), when this transform
       sits directly on it (no transform before this one), the repeat runs inside
       each sub-env's process (ManiSkill's ``ActionRepeatWrapper`` per sub-env):
       one round trip per outer step, each sub-env stops at its own episode's end;
@@ -122,7 +122,7 @@ class ActionRepeat(Transform):
         outer_mask = tensordict.get("_step", None)
         if outer_mask is not None and not bool(outer_mask.all()):
             return False
-        self._delegated = workers._request_worker_repeat(self.repeat)
+        self._delegated = workers.request_worker_repeat(self.repeat)
         return self._delegated
 
     def _parent_info(self) -> _ParentInfo:
@@ -215,11 +215,12 @@ class _ParentInfo:
         # Why: with no transform before this one, parent._step is base_env._step wrapped in an
         # identity inverse (a clone) and an identity forward pass: call the base env directly.
         self._base = parent.base_env if empty else None
-        # Directly on a ManiSkillWrapper whose CPU workers can repeat actions themselves
-        # (ManiSkillWrapper._request_worker_repeat): no transform between would see the inner steps.
+        # Directly on an env that may have its CPU workers repeat actions themselves
+        # (ManiSkillWrapper.request_worker_repeat, which says whether they will): no transform
+        # between would see the inner steps. Looked up on the class: batched and transformed envs
+        # forward unknown attributes to their sub-envs.
         base_env = self._base
-        can = callable(getattr(type(base_env), "_request_worker_repeat", None)) and base_env._workers is not None
-        self.workers = base_env if can else None
+        self.workers = base_env if callable(getattr(type(base_env), "request_worker_repeat", None)) else None
         self._complete: bool | None = None
 
     def step(self, td: TensorDictBase) -> TensorDictBase:

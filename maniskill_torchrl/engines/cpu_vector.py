@@ -17,8 +17,14 @@ an empty info dict cross the pipes. Nothing is rounded on the way: every sub-env
 equals a lone ManiSkill env given the same seed and actions, bit for bit.
 
 The worker side (the gym wrapper each worker runs, its factory, the buffers' layout) is in
-``cpu_worker.py``. Neither module imports TorchRL or the rest of the library beyond
+``_worker.py``. Neither module imports TorchRL or the rest of the library beyond
 ``_maniskill``: the workers import them, and start faster without them.
+
+The env core (:class:`~maniskill_torchrl.ManiSkillWrapper`) never imports this module: it reads
+the capabilities this engine declares (:attr:`CPUVectorEnv.returns_copies`,
+:attr:`~CPUVectorEnv.runs_inference_mode`, :attr:`~CPUVectorEnv.seeds_partial_resets`,
+:attr:`~CPUVectorEnv.reconfigures_partially`, :attr:`~CPUVectorEnv.repeats_actions`,
+:meth:`~CPUVectorEnv.render_frame_shape`), and ``ManiSkillEnv`` picks it.
 """
 
 from __future__ import annotations
@@ -33,8 +39,8 @@ from gymnasium.vector import AsyncVectorEnv, AutoresetMode
 from gymnasium.vector.utils import create_empty_array
 
 from maniskill_torchrl._maniskill import check_assets
-from maniskill_torchrl.cpu_failures import describe_failure, stop_workers
-from maniskill_torchrl.cpu_worker import (
+from maniskill_torchrl.engines._failures import describe_failure, stop_workers
+from maniskill_torchrl.engines._worker import (
     INFO,
     OBS,
     REWARD,
@@ -90,6 +96,22 @@ class CPUVectorEnv:
     """
 
     gpu_sim_enabled = False
+
+    # The capabilities the env core reads (``getattr(base, name, False)``), instead of importing
+    # this class; a ManiSkill ``BaseEnv`` has none of them.
+    #: Every output is a fresh, normal tensor (numpy copies from the sub-envs), which nothing
+    #: later writes into and nothing made under inference mode.
+    returns_copies = True
+    #: Every call into ManiSkill runs under :func:`torch.inference_mode` inside the engine, so
+    #: the caller need not enter it.
+    runs_inference_mode = True
+    #: ``reset(seed=s, options={"env_idx": idx})`` seeds the sub-envs in ``idx`` (``s + i``).
+    seeds_partial_resets = True
+    #: Each sub-env is its own ManiSkill env, so a partial reset may reconfigure the sub-envs it
+    #: resets (``reconfiguration_freq``), which one batched ManiSkill env cannot.
+    reconfigures_partially = True
+    #: The sub-envs repeat each action themselves (:attr:`repeat` and :meth:`set_repeat`).
+    repeats_actions = True
 
     def __init__(
         self,

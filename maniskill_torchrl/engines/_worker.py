@@ -1,4 +1,4 @@
-"""The worker side of :class:`~maniskill_torchrl.cpu_vector.CPUVectorEnv`, and the layout of the
+"""The worker side of :class:`~maniskill_torchrl.CPUVectorEnv`, and the layout of the
 shared buffers both sides read.
 
 Each worker process holds one ManiSkill CPU-sim env behind :class:`StepInObservation`, which
@@ -10,7 +10,7 @@ buffers and the parent's batched torch tensors.
 
 Like ``cpu_vector.py``, this module imports neither TorchRL nor the rest of the library beyond
 ``_maniskill`` when it loads: the workers import it, and start faster without them. A worker
-told to repeat actions imports the gym shim's ``ActionRepeatWrapper`` then.
+told to repeat actions imports ``_action_repeat`` (the gym shim's repeat step) then.
 """
 
 from __future__ import annotations
@@ -115,9 +115,10 @@ class StepInObservation(gym.Wrapper):
     unbatched (numpy, or dicts of them) and reach ManiSkill as ``[1, ...]`` torch tensors,
     as a batched ManiSkill env expects them.
 
-    :meth:`set_repeat` ``(k)`` makes each ``step`` go through the gym shim's
-    :class:`~maniskill_torchrl.wrappers.ActionRepeatWrapper` (ManiSkill's, bit for bit)
-    around the env with its reward in float32: up to ``k`` steps in this worker, none after its
+    :meth:`set_repeat` ``(k)`` makes each ``step`` the gym shim's
+    :class:`~maniskill_torchrl.wrappers.ActionRepeatWrapper` step (ManiSkill's, bit for bit;
+    ``maniskill_torchrl._action_repeat``, which both use, so no gym shim is imported here) on
+    the env with its reward in float32: up to ``k`` steps in this worker, none after its
     episode's end, rewards summed in float32 as :class:`~maniskill_torchrl.transforms.ActionRepeat`
     sums them.
 
@@ -145,7 +146,7 @@ class StepInObservation(gym.Wrapper):
             }
         )
         self.action_space = wrapper_attr(env, "single_action_space")
-        self._stepper: gym.Env = env  # what step() steps: the env, or an ActionRepeatWrapper around it
+        self._stepper: gym.Env = env  # what step() steps: the env, or its float32-reward view to repeat on
         self.repeat = 1
 
     @torch.inference_mode()
@@ -154,12 +155,13 @@ class StepInObservation(gym.Wrapper):
         if repeat == 1:
             self._stepper = self.env
         else:
-            # The gym shim (tensordict, no TorchRL) is imported only by workers that repeat.
-            from maniskill_torchrl.wrappers.action_repeat import ActionRepeatWrapper
+            # The masked merge (tensordict, no TorchRL) is imported only by workers that repeat.
+            from maniskill_torchrl._action_repeat import repeat_step
 
             # Each inner step's reward in float32 before the sum, as ActionRepeat sums the
             # parent env's float32 rewards: one rule for bool and float64 tasks on both paths.
-            self._stepper = ActionRepeatWrapper(_Float32Reward(self.env), repeat)
+            self._stepper = _Float32Reward(self.env)
+            self._repeat_step = repeat_step
         self.repeat = repeat
 
     @torch.inference_mode()
@@ -199,7 +201,10 @@ class StepInObservation(gym.Wrapper):
 
     @torch.inference_mode()
     def step(self, action: Any):
-        obs, reward, terminated, truncated, info = self._stepper.step(_batch(action))
+        if self.repeat == 1:
+            obs, reward, terminated, truncated, info = self._stepper.step(_batch(action))
+        else:
+            obs, reward, terminated, truncated, info = self._repeat_step(self._stepper, _batch(action), self.repeat)
         packed = self._pack(obs, info, reward[0].numpy(), terminated[0].numpy(), truncated[0].numpy())
         return packed, 0.0, False, False, {}
 

@@ -1,4 +1,4 @@
-"""What :class:`~maniskill_torchrl.cpu_vector.CPUVectorEnv` does when its workers fail: say which
+"""What :class:`~maniskill_torchrl.CPUVectorEnv` does when its workers fail: say which
 worker died or raised (or that sending to them failed), and stop them all, since the others
 would wait forever for a sub-env that is gone.
 
