@@ -44,8 +44,8 @@ class ManiSkillEnv(ManiSkillWrapper):
         from_pixels (bool): add ``"pixels"`` (sets ``render_mode="rgb_array"``).
         inference_mode (bool, optional): run ManiSkill under :func:`torch.inference_mode`
             (see :class:`ManiSkillWrapper`). Default: on for a CPU-sim env in this process
-            (``num_envs=1``, and each env of a ``ParallelEnv`` of singles: 0.83x the CPU of a
-            ManiSkill step in grad mode), off on the GPU sim; the sub-envs of ``num_envs > 1``
+            (``num_envs=1``, and each env of a ``ParallelEnv`` of singles: less CPU per step than
+            grad mode, for the same values), off on the GPU sim; the sub-envs of ``num_envs > 1``
             on the CPU sim always use it. Pass False if your code calls ``env.base_env``'s methods itself
             outside inference mode.
         batch_size (list of int, optional): ``[num_envs]`` by default. ``[]`` with ``num_envs=1``
