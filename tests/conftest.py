@@ -51,11 +51,17 @@ def _keep_sapien_renderer():
     device per process). The pictures are the same: only the engine's start-up is skipped.
     """
     yield
-    if _RENDERER or torch.cuda.is_available():
+    if _RENDERER:
         return
     from maniskill_torchrl._mp import vulkan_loaded
 
     if not vulkan_loaded():
+        return
+    from maniskill_torchrl._maniskill import _no_cuda_render_device
+
+    # Asked of SAPIEN, as ManiSkill's default render backend asks: a machine whose SAPIEN renders
+    # on CUDA (even where torch sees no CUDA) must not hold a CPU renderer.
+    if not _no_cuda_render_device():
         return
     import sapien
 
