@@ -26,7 +26,7 @@ root_doc = "index"
 exclude_patterns = ["_build"]
 
 myst_enable_extensions = ["colon_fence", "deflist"]
-# GitHub-style anchors for headings, so links such as results.md#ppo-... resolve.
+# GitHub-style anchors for headings, so links such as guides/gpu.md#some-heading resolve.
 myst_heading_anchors = 4
 
 autodoc_member_order = "bysource"
