@@ -148,6 +148,7 @@ class StepInObservation(gym.Wrapper):
         self.action_space = wrapper_attr(env, "single_action_space")
         self._stepper: gym.Env = env  # what step() steps: the env, or its float32-reward view to repeat on
         self.repeat = 1
+        self.trace = None  # a StepTrace (engines/_trace.py) this sub-env stamps, when the engine traces
 
     @torch.inference_mode()
     def set_repeat(self, repeat: int) -> None:
@@ -201,10 +202,16 @@ class StepInObservation(gym.Wrapper):
 
     @torch.inference_mode()
     def step(self, action: Any):
+        trace = self.trace
+        if trace is not None:
+            trace.stamp(3 + 2 * self.index)
         if self.repeat == 1:
             obs, reward, terminated, truncated, info = self._stepper.step(_batch(action))
         else:
             obs, reward, terminated, truncated, info = self._repeat_step(self._stepper, _batch(action), self.repeat)
+        if trace is not None:
+            trace.stamp(4 + 2 * self.index)
+            trace.count += 1
         packed = self._pack(obs, info, reward[0].numpy(), terminated[0].numpy(), truncated[0].numpy())
         return packed, 0.0, False, False, {}
 
@@ -234,13 +241,19 @@ def _map_tensors(tree: Any, fn: Any) -> Any:
 class MakeWorker:
     """Picklable env factory for the forkserver workers (``index``: the sub-env it makes)."""
 
-    def __init__(self, env_id: str, kwargs: dict, index: int = 0) -> None:
+    def __init__(self, env_id: str, kwargs: dict, index: int = 0, trace: tuple | None = None) -> None:
         self.env_id, self.kwargs, self.index = env_id, kwargs, index
+        self.trace = trace  # a StepTrace's spec: a worker's sub-env stamps its steps there
 
     def __call__(self) -> gym.Env:
+        env = self.make()
         if multiprocessing.parent_process() is not None:  # a worker; gymnasium also calls this in the parent
             _batch_scheduling()
-        return self.make()
+            if self.trace is not None:
+                from maniskill_torchrl.engines._trace import StepTrace
+
+                env.trace = StepTrace(*self.trace)
+        return env
 
     def make(self) -> StepInObservation:
         """The env, with no change to this process's scheduling (the parent's own sub-env)."""

@@ -40,6 +40,7 @@ from gymnasium.vector.utils import create_empty_array
 
 from maniskill_torchrl._maniskill import check_assets
 from maniskill_torchrl.engines._failures import describe_failure, stop_workers
+from maniskill_torchrl.engines._trace import COLLECT_END, HERE_END, SEND, StepTrace, summarize
 from maniskill_torchrl.engines._worker import (
     INFO,
     OBS,
@@ -72,6 +73,9 @@ class CPUVectorEnv:
             workers, and this process only waits for them.
         context (str): the multiprocessing start method of the workers. ``"forkserver"``
             (default) or ``"spawn"``; ``"fork"`` hangs once SAPIEN is loaded in this process.
+        trace_steps (int): keep timestamps of the last ``trace_steps`` steps in shared memory
+            (the parent's send and collect, each sub-env's wake and sim end), read with
+            :meth:`trace` (default 0: none).
         **maniskill_kwargs: passed to every sub-env's ``gym.make`` (``obs_mode``,
             ``control_mode``, ``max_episode_steps``, ``render_mode``...).
 
@@ -120,6 +124,7 @@ class CPUVectorEnv:
         *,
         in_process: bool = True,
         context: str = "forkserver",
+        trace_steps: int = 0,
         **maniskill_kwargs: Any,
     ) -> None:
         if context == "fork":
@@ -142,7 +147,9 @@ class CPUVectorEnv:
         self._local = None
         self._closed = False
         self._closed_why = ""
-        makers = [MakeWorker(env_id, maniskill_kwargs, index=i) for i in range(num_envs)]
+        self._trace = StepTrace(num_envs, trace_steps) if trace_steps else None
+        spec = None if self._trace is None else self._trace.spec
+        makers = [MakeWorker(env_id, maniskill_kwargs, index=i, trace=spec) for i in range(num_envs)]
         try:
             if num_envs > self._first:
                 self._vec = AsyncVectorEnv(
@@ -154,6 +161,8 @@ class CPUVectorEnv:
                 )
             if in_process:
                 self._local = makers[0].make()
+                if spec is not None:  # sub-env 0 stamps its columns as a worker does, with its own count
+                    self._local.trace = StepTrace(*spec)
         except (EOFError, ConnectionError) as err:  # a worker died before gymnasium's own error handling
             self.close()
             raise RuntimeError(
@@ -227,15 +236,35 @@ class CPUVectorEnv:
         first = None
         if self._local is not None:
             first, action = split_first(action)
-        mine, _ = self._together(
-            "step",
-            lambda vec: vec.step_async(action),
-            lambda: self._local.step(first)[0],  # while the workers step theirs
-            lambda vec: vec.step_wait(),
-        )
+        trace = self._trace
+        if trace is None:
+            mine, _ = self._together(
+                "step",
+                lambda vec: vec.step_async(action),
+                lambda: self._local.step(first)[0],  # while the workers step theirs
+                lambda vec: vec.step_wait(),
+            )
+        else:
+            trace.stamp(SEND)
+            mine, _ = self._together(
+                "step",
+                lambda vec: vec.step_async(action),
+                lambda: (self._local.step(first)[0], trace.stamp(HERE_END))[0],
+                lambda vec: (vec.step_wait(), trace.stamp(COLLECT_END))[0],
+            )
+            trace.count += 1
         if mine is not None:
             write_row(self._row, mine)
         return self._read()
+
+    def trace(self) -> dict:
+        """The traced steps (``CPUVectorEnv(..., trace_steps=T)``: the last ``T``) and their summary:
+        ``{"rows": [steps, 3 + 2 * num_envs] timestamps, "summary": ...}`` (``engines/_trace.py``
+        says what each column and figure is)."""
+        if self._trace is None:
+            raise RuntimeError("This CPUVectorEnv keeps no trace: make it with trace_steps=T (the last T steps).")
+        rows = self._trace_rows if self._closed else self._trace.rows()
+        return {"rows": rows, "summary": summarize(rows)}
 
     def reset(self, *, seed: int | list[int] | None = None, options: dict | None = None) -> tuple[Any, dict]:
         options = dict(options) if options else {}
@@ -355,7 +384,12 @@ class CPUVectorEnv:
             if self._vec is not None:
                 self._vec.close()
             if self._local is not None:
+                if self._local.trace is not None:
+                    self._local.trace.close()
                 self._local.close()
+            if self._trace is not None:  # the rows stay readable with trace()
+                self._trace_rows = self._trace.rows()
+                self._trace.close()
 
     def __repr__(self) -> str:
         repeat = f", repeat={self._repeat}" if self._repeat != 1 else ""
