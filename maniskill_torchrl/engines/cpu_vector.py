@@ -250,8 +250,9 @@ class CPUVectorEnv:
                 "step",
                 lambda vec: vec.step_async(action),
                 lambda: (self._local.step(first)[0], trace.stamp(HERE_END))[0],
-                lambda vec: (vec.step_wait(), trace.stamp(COLLECT_END))[0],
+                lambda vec: vec.step_wait(),
             )
+            trace.stamp(COLLECT_END)
             trace.count += 1
         if mine is not None:
             write_row(self._row, mine)
