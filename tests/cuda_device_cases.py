@@ -27,7 +27,7 @@ if os.environ.get("MANISKILL_TORCHRL_CUDA_DOUBLE") != "1":
 
 import cuda_double  # noqa: E402
 from cuda_double import DEVICE  # noqa: E402
-from helpers import close_envs  # noqa: E402
+from helpers import closed_after_test  # noqa: E402, F401  (closed_after_test: the envs fixture)
 from maniskill_torchrl import EpisodeMetrics, ManiSkillEnv  # noqa: E402
 from maniskill_torchrl.parallel import ParallelEnv  # noqa: E402
 from maniskill_torchrl.testing import assert_on_device, assert_tensordict_equal  # noqa: E402
@@ -43,13 +43,6 @@ PIXELS = dict(
 )
 RGB = dict(STATE, obs_mode="rgb", sensor_configs=dict(width=16, height=16))
 STEPS = 5  # 4-step episodes: a done and a reset inside
-
-
-@pytest.fixture
-def envs():
-    made = []
-    yield made
-    close_envs(made)
 
 
 def _make(envs: list, **kwargs):

@@ -26,7 +26,7 @@ if os.environ.get("MANISKILL_TORCHRL_CUDA_DOUBLE") != "1":
     pytest.skip("runs under the CUDA double only (tests/test_cuda_machine.py)", allow_module_level=True)
 
 from cuda_double import DEVICE  # noqa: E402  (the sitecustomize of tests/cuda_site installed it)
-from helpers import close_envs, random_actions  # noqa: E402
+from helpers import closed_after_test, random_actions  # noqa: E402, F401  (closed_after_test: the envs fixture)
 from maniskill_torchrl import EpisodeMetrics, ManiSkillEnv  # noqa: E402
 from maniskill_torchrl.parallel import ParallelEnv  # noqa: E402
 from maniskill_torchrl.testing import assert_on_device, assert_tensordict_equal  # noqa: E402
@@ -64,13 +64,6 @@ class Scripted:
 def _rollout(env, seed: int = 7) -> TensorDict:
     env.set_seed(seed)
     return env.rollout(STEPS, Scripted(env, _actions(env)), break_when_any_done=False)
-
-
-@pytest.fixture
-def envs():
-    made = []
-    yield made
-    close_envs(made)
 
 
 def _make(envs: list, **kwargs):

@@ -24,6 +24,7 @@ from unittest import mock
 
 import gymnasium as gym
 import numpy as np
+import pytest
 import torch
 from tensordict import TensorDictBase
 
@@ -41,6 +42,15 @@ def make_gym_env(env_id: str = "PickCube-v1", **kwargs) -> gym.Env:
 
     kwargs.setdefault("num_envs", 1)
     return gym.make(env_id, **kwargs)
+
+
+@pytest.fixture(name="envs")
+def closed_after_test():
+    """A list the test appends the envs it makes to, closed (:func:`close_envs`) after it; a test
+    module takes it with ``from helpers import closed_after_test``."""
+    made: list = []
+    yield made
+    close_envs(made)
 
 
 def close_envs(envs: Iterable[Any]) -> None:
