@@ -243,7 +243,6 @@ def _patches() -> list[tuple[Any, str, Any]]:
 
     import maniskill_torchrl._maniskill as lib_maniskill
 
-    buffers: dict = {}
     parse = sapien_env.parse_sim_and_render_backend
 
     def get_picture(self, names):
@@ -252,9 +251,14 @@ def _patches() -> list[tuple[Any, str, Any]]:
         for name in names:
             # ManiSkill's CPU read, then SAPIEN's CUDA road: one buffer per camera and texture.
             picture = common.to_tensor(self._render_cameras[0].get_picture(name))[None, ...]
-            buf = buffers.get((id(self), name))
+            # Kept on the camera itself: a dict keyed by id() hands a dead camera's buffer to a new
+            # one that reuses its address. Made outside inference mode, as SAPIEN's own buffers are,
+            # so a later upload outside it may write into it.
+            buffers = self.__dict__.setdefault("_double_buffers", {})
+            buf = buffers.get(name)
             if buf is None or buf.shape != picture.shape:
-                buf = buffers[id(self), name] = torch.empty(picture.shape, dtype=picture.dtype, device=DEVICE)
+                with torch.inference_mode(False):
+                    buf = buffers[name] = torch.empty(picture.shape, dtype=picture.dtype, device=DEVICE)
             buf.inner.copy_(picture)  # SAPIEN's own upload: counted apart from the library's copies
             TRANSFERS["render_upload"] += 1
             out.append(buf)
