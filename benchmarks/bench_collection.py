@@ -17,7 +17,11 @@ Task PickCube-v1, ``obs_mode="state"``, random actions, ``max_episode_steps=50``
 - ``batched:<options>``: the same with settings changed (comma-separated options): ``rp``
   (``policy=RandomPolicy(env.action_spec)``), ``dev`` (``device=env.device``), ``notraj``
   (``track_traj_ids=False``), ``noinf`` (``inference_mode=False``), ``t1`` (one torch thread),
-  ``workers`` (``in_process=False``: every sub-env in a worker process, none in this one);
+  ``workers`` (``in_process=False``: every sub-env in a worker process, none in this one),
+  ``em`` (``EpisodeMetrics()`` after the repeat). The README's pipeline is ``batched:t1,rp,dev,em``
+  with ``--repeat 2``;
+- ``gym:<options>``: ``t1`` (one torch thread in the main process and in each worker, the
+  library's thread policy), ``noshm`` (``AsyncVectorEnv(..., shared_memory=False)``);
 - ``parallel``: ``Collector(ParallelEnv(N, lambda: TransformedEnv(ManiSkillEnv(id,
   obs_mode="state", max_episode_steps=50), CPUUnbatch())), policy=None)``, what TorchRL
   users write by habit (``Compose(CPUUnbatch(), ActionRepeat(2))`` inside the workers for

@@ -33,12 +33,16 @@ def _quiet() -> None:
     warnings.filterwarnings("ignore")
 
 
-def _gym_thunk(repeat: int):
+def _gym_thunk(repeat: int, threads: int | None = None):
     import gymnasium as gym
     import mani_skill.envs  # noqa: F401
     from mani_skill.utils.wrappers import ActionRepeatWrapper, CPUGymWrapper
 
     _quiet()
+    if threads is not None:  # the thread policy of the library's workers (gym:t1)
+        import torch
+
+        torch.set_num_threads(threads)
     env = gym.make(ENV_ID, num_envs=1, **_maniskill_kwargs())
     if repeat > 1:
         env = ActionRepeatWrapper(env, repeat)
@@ -149,13 +153,26 @@ def _time_collector(collector, seconds: float, meter: _CPUMeter) -> dict:
     return {**_measured(frames, wall, a, b), "startup_s": startup}
 
 
-def gym_vector_env(n: int, repeat: int):
-    """The gym path's vector env, reset and its action space seeded."""
+def gym_vector_env(n: int, repeat: int, opts: dict | None = None):
+    """The gym path's vector env, reset and its action space seeded. Options: ``t1`` (one torch
+    thread in this process and in each worker, as the library's workers and README set),
+    ``noshm`` (``shared_memory=False``: observations pickled through the pipes; gymnasium's
+    default is shared memory)."""
     import functools
 
     import gymnasium as gym
 
-    envs = gym.vector.AsyncVectorEnv([functools.partial(_gym_thunk, repeat)] * n, context="forkserver")
+    opts = opts or {}
+    threads = 1 if "t1" in opts else None
+    if threads is not None:
+        import torch
+
+        torch.set_num_threads(threads)
+    envs = gym.vector.AsyncVectorEnv(
+        [functools.partial(_gym_thunk, repeat, threads)] * n,
+        context="forkserver",
+        shared_memory="noshm" not in opts,
+    )
     envs.reset(seed=SEED)
     envs.action_space.seed(SEED)
     return envs
@@ -163,7 +180,7 @@ def gym_vector_env(n: int, repeat: int):
 
 def child_gym(n: int, repeat: int, seconds: float, opts: dict) -> dict:
     meter = _CPUMeter()
-    envs = gym_vector_env(n, repeat)
+    envs = gym_vector_env(n, repeat, opts)
     sample, step = envs.action_space.sample, envs.step
     for _ in range(EPISODE):  # warm-up
         step(sample())
@@ -198,13 +215,18 @@ def child_batched(n: int, repeat: int, seconds: float, opts: dict) -> dict:
 def batched_collector(n: int, repeat: int, opts: dict):
     """``Collector(ManiSkillEnv(id, num_envs=n) (-> ActionRepeat), ...)`` with the options' settings."""
     from torchrl.collectors import Collector
-    from torchrl.envs import TransformedEnv
+    from torchrl.envs import Compose, TransformedEnv
 
     from maniskill_torchrl import ActionRepeat, ManiSkillEnv
 
     env = ManiSkillEnv(ENV_ID, num_envs=n, **_maniskill_kwargs(), **env_options(opts))
-    if repeat > 1:
-        env = TransformedEnv(env, ActionRepeat(repeat))
+    transforms = [ActionRepeat(repeat)] if repeat > 1 else []
+    if "em" in opts:  # the README's pipeline ends with EpisodeMetrics
+        from maniskill_torchrl import EpisodeMetrics
+
+        transforms.append(EpisodeMetrics())
+    if transforms:
+        env = TransformedEnv(env, Compose(*transforms))
     env.set_seed(SEED)
     policy, kwargs = collector_options(env, opts)
     return Collector(env, policy=policy, frames_per_batch=EPISODE * n, total_frames=-1, **kwargs)

@@ -39,8 +39,8 @@ class ManiSkillEnv(ManiSkillWrapper):
             simulator; on the CPU sim (``sim_backend="cpu"``, or ``"auto"``
             without CUDA), which holds one env per process, ``num_envs > 1``
             runs one process per env, sub-env 0 in this one and the others in
-            workers (:class:`~maniskill_torchrl.CPUVectorEnv`, gymnasium's
-            ``AsyncVectorEnv`` underneath), with the same keys, specs and dtypes.
+            workers (:class:`~maniskill_torchrl.CPUVectorEnv`, one shared-memory
+            block for the batch), with the same keys, specs and dtypes.
         from_pixels (bool): add ``"pixels"`` (sets ``render_mode="rgb_array"``).
         inference_mode (bool, optional): run ManiSkill under :func:`torch.inference_mode`
             (see :class:`ManiSkillWrapper`). Default: on for a CPU-sim env in this process

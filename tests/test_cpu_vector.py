@@ -336,7 +336,7 @@ def test_wrapper_accepts_a_cpu_vector_env(pick_vec):
         assert env.rand_step(env.reset(seed=0))["next", "observation"].shape == (3, 42)
     finally:
         env.close()
-    assert all(not p.is_alive() for p in vec._vec.processes)
+    assert all(not p.is_alive() for p in vec._pool.processes)
 
 
 def test_one_sub_env_runs_in_this_process_alone():
@@ -352,7 +352,7 @@ def test_one_sub_env_runs_in_this_process_alone():
     vec = CPUVectorEnv("PickCube-v1", 1, **PICK)
     raw = make_gym_env("PickCube-v1", **PICK)
     try:
-        assert vec._vec is None
+        assert vec._pool is None
         obs, info = vec.reset(seed=4)
         want_obs, want_info = _clone(raw.reset(seed=4))
         assert_same(obs, want_obs, "reset obs")
@@ -407,14 +407,14 @@ def test_dead_worker_raises_instead_of_hanging(pick):
     """Kills a worker of the shared ``pick`` env: the last test that uses it."""
     env = pick
     td = env.reset(seed=0)
-    worker = env._env._vec.processes[-1]  # sub-env N - 1's (sub-env 0 runs in this process)
+    worker = env._env._pool.processes[-1]  # sub-env N - 1's (sub-env 0 runs in this process)
     os.kill(worker.pid, signal.SIGKILL)
     worker.join(5)
     with pytest.raises(
         RuntimeError, match=rf"CPUVectorEnv\(PickCube-v1\): worker\(s\) of sub-env\(s\) \[{N - 1}\] died during step"
     ):
         env.rand_step(td)
-    assert all(not p.is_alive() for p in env._env._vec.processes)
+    assert all(not p.is_alive() for p in env._env._pool.processes)
     env.close()  # closing again is harmless
 
 

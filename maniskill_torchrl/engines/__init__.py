@@ -1,8 +1,9 @@
 """Engines: what runs several ManiSkill envs for :class:`~maniskill_torchrl.ManiSkillEnv`.
 
 - :class:`~maniskill_torchrl.CPUVectorEnv` (``engines/cpu_vector.py``): N CPU-sim envs, one per
-  process, with the GPU sim's batched API. ``_worker.py`` is its worker side, ``_failures.py``
-  what it does when a worker dies or raises.
+  process, with the GPU sim's batched API. ``_worker.py`` is its worker side, ``_shared.py`` the
+  shared-memory block of actions and results, ``_pool.py`` the workers seen from the parent
+  (and what it does when one dies or raises), ``_trace.py`` the per-step trace.
 
 An engine answers ManiSkill's batched env API (``num_envs``, ``device``, ``gpu_sim_enabled``,
 ``single_observation_space``, ``single_action_space``, ``render_mode``, ``spec``, ``unwrapped``,

@@ -1,12 +1,12 @@
-"""The worker side of :class:`~maniskill_torchrl.CPUVectorEnv`, and the layout of the
-shared buffers both sides read.
+"""The worker side of :class:`~maniskill_torchrl.CPUVectorEnv`.
 
-Each worker process holds one ManiSkill CPU-sim env behind :class:`StepInObservation`, which
-writes its whole step (observation, reward, flags, tensor infos) into gymnasium's shared-memory
-observation buffers with ManiSkill's own dtypes; :class:`MakeWorker` is the picklable factory
-that builds it in the worker (and the parent's own sub-env 0, whose step the parent writes into
-a one-row buffer of the same layout). The tree helpers at the end convert between those numpy
-buffers and the parent's batched torch tensors.
+Each worker process holds one ManiSkill CPU-sim env behind :class:`StepInObservation`, which packs
+its whole step (observation, reward, flags, tensor infos) into one tree with ManiSkill's own
+dtypes, and runs :func:`serve`: it waits on its pipe, steps with the action it reads from the
+shared block (``_shared.py``) and writes its step into its own row there. A step crosses the pipe
+as one byte each way; other calls (reset, call, close) as small pickles. :class:`MakeWorker` is
+the picklable factory that builds the env in the worker (and the parent's own sub-env 0, which
+writes its row the same way).
 
 Like ``cpu_vector.py``, this module imports neither TorchRL nor the rest of the library beyond
 ``_maniskill`` when it loads: the workers import it, and start faster without them. A worker
@@ -17,6 +17,9 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import pickle
+import sys
+import traceback
 from collections.abc import Mapping
 from typing import Any
 
@@ -41,17 +44,19 @@ __all__ = [
     "TRUNCATED",
     "StepInObservation",
     "MakeWorker",
+    "serve",
+    "STEP",
+    "DONE",
     "SUB_ENV_STATES",
     "join_states",
     "to_numpy",
-    "split_first",
-    "write_row",
-    "join_rows",
     "zeros_tree",
 ]
 
 # The entries of a worker's observation: its whole step.
 OBS, INFO, REWARD, TERMINATED, TRUNCATED = "obs", "info", "reward", "terminated", "truncated"
+# A step crosses a worker's pipe as one byte each way: the parent's wake, the worker's done.
+STEP, DONE = b"s", b"k"
 # A reset option of the CPUVectorEnv's own: (sub-env indices being reset, their saved states, one row each).
 SUB_ENV_STATES = "_sub_env_states"
 
@@ -109,9 +114,9 @@ class StepInObservation(gym.Wrapper):
     """Worker side: one ManiSkill CPU env whose whole step travels as one observation.
 
     The observation becomes ``{"obs", "info", "reward", "terminated", "truncated"}``,
-    unbatched numpy with ManiSkill's dtypes, so gymnasium's shared-memory buffers carry
-    all of it; ``step`` returns a dummy reward, dummy flags and an empty info dict (no
-    per-step pickling of infos, no merging of info dicts in the parent). Actions arrive
+    unbatched numpy with ManiSkill's dtypes, which the worker writes into its row of the shared
+    block; ``step`` returns a dummy reward, dummy flags and an empty info dict (no per-step
+    pickling of infos, no merging of info dicts in the parent). Actions arrive
     unbatched (numpy, or dicts of them) and reach ManiSkill as ``[1, ...]`` torch tensors,
     as a batched ManiSkill env expects them.
 
@@ -247,8 +252,11 @@ class MakeWorker:
 
     def __call__(self) -> gym.Env:
         env = self.make()
-        if multiprocessing.parent_process() is not None:  # a worker; gymnasium also calls this in the parent
+        if multiprocessing.parent_process() is not None:  # a worker
             _batch_scheduling()
+            # One intra-op thread per worker, as TorchRL's ParallelEnv sets: N workers on N cores,
+            # not N thread pools of every core each (a ManiSkill step is many small torch ops).
+            torch.set_num_threads(1)
             if self.trace is not None:
                 from maniskill_torchrl.engines._trace import StepTrace
 
@@ -264,6 +272,89 @@ class MakeWorker:
             # Sub-env 0 in the parent shares its render device with the parent's other envs.
             env = make_maniskill(self.env_id, batched=True, num_envs=1, **kwargs)
             return StepInObservation(env, self.index)
+
+
+def serve(conn: Any, make: MakeWorker) -> None:
+    """A worker's life: make the env, say what it is, then answer the parent until told to close.
+
+    Messages on ``conn`` (a duplex :class:`multiprocessing.connection.Connection`):
+
+    - the first reply: ``("ready", result space, action space, render mode)``, or an error;
+    - :data:`STEP`: step with this sub-env's row of the block's actions, write its row of the
+      results, answer :data:`DONE`;
+    - a pickled ``(command, args, kwargs)``: ``attach`` (the block's layout and name), ``reset``
+      (its row written, like a step), ``call`` (a method or attribute of the env, its value
+      pickled back), ``close``. Each is answered ``("ok", value)``.
+
+    An exception is answered ``("error", exception or None, type name, message)`` after its
+    traceback is printed here, and the worker waits for the next message. A closed pipe (the parent
+    is gone) ends it.
+    """
+    index = make.index
+    try:
+        env = make()
+        _send(conn, ("ready", env.observation_space, env.action_space, env.render_mode))
+    except BaseException as err:
+        _fail(conn, index, err)
+        return
+    block = None
+    try:
+        while True:
+            try:
+                message = conn.recv_bytes()
+            except (EOFError, OSError):
+                return
+            try:
+                if message == STEP:
+                    block.write_row(index, env.step(block.action_row(index))[0])
+                    conn.send_bytes(DONE)
+                    continue
+                command, args, kwargs = pickle.loads(message)
+                value = None
+                if command == "attach":
+                    from maniskill_torchrl.engines._shared import SharedBlock
+
+                    block = SharedBlock(*args)
+                elif command == "reset":
+                    block.write_row(index, env.reset(**kwargs)[0])
+                elif command == "call":
+                    attr = env.get_wrapper_attr(args[0])
+                    value = attr(*args[1:], **kwargs) if callable(attr) else attr
+                elif command == "close":
+                    _send(conn, ("ok", None))
+                    return
+                else:
+                    raise ValueError(f"unknown command {command!r}")
+                _send(conn, ("ok", value))
+            except KeyboardInterrupt:  # Ctrl-C reaches every process of the group: the parent decides
+                return
+            except Exception as err:
+                _fail(conn, index, err)
+    finally:
+        env.close()
+        if block is not None:
+            block.close()
+
+
+def _send(conn: Any, message: tuple) -> None:
+    conn.send_bytes(pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL))
+
+
+def _fail(conn: Any, index: int, err: BaseException) -> None:
+    """Prints ``err``'s traceback and sends it to the parent (the exception itself where it pickles)."""
+    sys.stderr.write(f"CPUVectorEnv: the worker of sub-env {index} raised:\n{traceback.format_exc()}")
+    sys.stderr.flush()
+    try:
+        payload = pickle.dumps(err)
+        pickle.loads(payload)
+    except Exception:
+        err_copy = None
+    else:
+        err_copy = err
+    try:
+        _send(conn, ("error", err_copy, type(err).__name__, str(err)))
+    except (OSError, EOFError):
+        pass
 
 
 def _batch_scheduling() -> None:
@@ -287,34 +378,6 @@ def to_numpy(action: Any) -> Any:
     if isinstance(action, torch.Tensor):
         return action.detach().cpu().numpy()
     return {k: to_numpy(v) for k, v in action.items()}
-
-
-def split_first(x: Any) -> tuple[Any, Any]:
-    """``[N, ...]`` numpy actions (or dicts of them) -> (row 0, copied: the sub-env in this process
-    may keep it while the caller reuses its tensor; rows ``1:``, for the workers)."""
-    if isinstance(x, np.ndarray):
-        return x[0].copy(), x[1:]
-    pairs = {k: split_first(v) for k, v in x.items()}
-    return {k: p[0] for k, p in pairs.items()}, {k: p[1] for k, p in pairs.items()}
-
-
-def write_row(buf: Any, value: Any) -> None:
-    """Writes one sub-env's unbatched entries into ``[1, ...]`` buffers, cast to their dtypes as
-    gymnasium writes a worker's into shared memory."""
-    if isinstance(buf, np.ndarray):
-        buf[0] = np.asarray(value, dtype=buf.dtype)
-    else:
-        for k, b in buf.items():
-            write_row(b, value[k])
-
-
-def join_rows(*parts: Any) -> Any:
-    """``[k, ...]`` numpy buffers (or dicts of them; None: left out), e.g. sub-env 0's ``[1, ...]``
-    and the workers' shared ``[N - 1, ...]`` -> ``[N, ...]`` torch copies, one copy each."""
-    parts = [p for p in parts if p is not None]
-    if isinstance(parts[0], np.ndarray):
-        return torch.from_numpy(np.concatenate(parts))
-    return {k: join_rows(*(p[k] for p in parts)) for k in parts[0]}
 
 
 def zeros_tree(space: gym.spaces.Dict, n: int) -> dict:

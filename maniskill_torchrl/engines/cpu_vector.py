@@ -1,24 +1,23 @@
 """N ManiSkill CPU-sim envs, one per process, behind ManiSkill's batched torch API.
 
-ManiSkill's CPU sim holds one env per process. :class:`CPUVectorEnv` runs ``N``
-of them, sub-env 0 in this process and the others in gymnasium's
-:class:`~gymnasium.vector.AsyncVectorEnv` (the engine ManiSkill's own CPU baselines
-use), and answers like one GPU-sim env of ``num_envs=N``: ``step`` / ``reset`` take
-and return batched torch tensors (``[N, ...]``), ``reset(options={"env_idx": ...})``
-resets some envs only, and ``get_info()`` describes the info entries.
-:class:`~maniskill_torchrl.ManiSkillWrapper` wraps it as it wraps a GPU-sim env, so CPU
+ManiSkill's CPU sim holds one env per process. :class:`CPUVectorEnv` runs ``N`` of them, sub-env
+0 in this process and the others in worker processes, and answers like one GPU-sim env of
+``num_envs=N``: ``step`` / ``reset`` take and return batched torch tensors (``[N, ...]``),
+``reset(options={"env_idx": ...})`` resets some envs only, and ``get_info()`` describes the info
+entries. :class:`~maniskill_torchrl.ManiSkillWrapper` wraps it as it wraps a GPU-sim env, so CPU
 and GPU users write the same code.
 
-This process steps sub-env 0 while the workers step the others, instead of sleeping
-until they are done: one process fewer to wake and to send actions to per step.
-Each worker writes its whole step (observation, reward, flags, tensor infos) into
-gymnasium's shared-memory buffers with ManiSkill's own dtypes; only the actions and
-an empty info dict cross the pipes. Nothing is rounded on the way: every sub-env
-equals a lone ManiSkill env given the same seed and actions, bit for bit.
+One shared-memory block holds every sub-env's actions and step results, ``[N, ...]`` per leaf
+with ManiSkill's own dtypes (``_shared.py``). A step writes the actions there, wakes each worker
+with one byte on its pipe, steps sub-env 0 here while they step theirs, waits for one byte back
+from each, and reads the whole batch with one copy: no pickling and no concatenation per step.
+Each sub-env, sub-env 0 included, writes its own row. Nothing is rounded on the way: every
+sub-env equals a lone ManiSkill env given the same seed and actions, bit for bit.
 
-The worker side (the gym wrapper each worker runs, its factory, the buffers' layout) is in
-``_worker.py``. Neither module imports TorchRL or the rest of the library beyond
-``_maniskill``: the workers import them, and start faster without them.
+The worker side (the gym wrapper each worker runs, its factory, its loop) is in ``_worker.py``;
+the processes and pipes seen from here in ``_pool.py``. None of these modules imports TorchRL or
+the rest of the library beyond ``_maniskill``: the workers import them, and start faster
+without them.
 
 The env core (:class:`~maniskill_torchrl.ManiSkillWrapper`) never imports this module: it reads
 the capabilities this engine declares (:attr:`CPUVectorEnv.returns_copies`,
@@ -29,17 +28,17 @@ the capabilities this engine declares (:attr:`CPUVectorEnv.returns_copies`,
 
 from __future__ import annotations
 
+import pickle
 from collections.abc import Mapping
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 import torch
-from gymnasium.vector import AsyncVectorEnv, AutoresetMode
-from gymnasium.vector.utils import create_empty_array
 
 from maniskill_torchrl._maniskill import check_assets
-from maniskill_torchrl.engines._failures import describe_failure, stop_workers
+from maniskill_torchrl.engines._pool import WorkerFailure, WorkerPool
+from maniskill_torchrl.engines._shared import Layout, SharedBlock
 from maniskill_torchrl.engines._trace import COLLECT_END, HERE_END, SEND, StepTrace, summarize
 from maniskill_torchrl.engines._worker import (
     INFO,
@@ -49,11 +48,8 @@ from maniskill_torchrl.engines._worker import (
     TERMINATED,
     TRUNCATED,
     MakeWorker,
-    join_rows,
     join_states,
-    split_first,
     to_numpy,
-    write_row,
     zeros_tree,
 )
 
@@ -87,16 +83,16 @@ class CPUVectorEnv:
     ``reset(seed=s, options={"env_idx": idx})`` for the sub-envs in ``idx`` only (the
     others keep running). Without a seed, a sub-env's reset is ManiSkill's unseeded
     reset, which draws from its process's global torch RNG (this process's, for sub-env 0).
-    All sub-envs are stepped together: gymnasium's ``AsyncVectorEnv`` has no partial step.
+    All sub-envs are stepped together (a step is lockstep: it returns when the slowest is done).
     After :meth:`set_repeat` ``(k)`` each ``step`` repeats its action up to ``k`` times in
     every sub-env, which stops at its own episode's end (ManiSkill's ``ActionRepeatWrapper``
     per sub-env): one round trip per ``step``, no physics after an end.
 
     Every call into ManiSkill runs under :func:`torch.inference_mode`, sub-env 0's too; only
     numpy copies leave the sub-envs. A failure is raised here, by the call that met it: sub-env
-    0's exception as is, gymnasium re-raises a worker's Python exception, and a worker that
-    died makes the call raise a ``RuntimeError`` naming its sub-env, after the other workers
-    are stopped.
+    0's exception as is (the env goes on); a worker's exception, or a worker that died, makes the
+    call raise a ``RuntimeError`` naming its sub-env, after every worker is stopped and the env
+    closed (the worker's exception is its cause, where it could be sent).
     """
 
     gpu_sim_enabled = False
@@ -142,49 +138,48 @@ class CPUVectorEnv:
         self.maniskill_kwargs = dict(maniskill_kwargs)
         self.num_envs = int(num_envs)
         self.device = torch.device("cpu")
+        self.spec = gym.spec(env_id)
         self._first = 1 if in_process else 0  # the sub-env index of the first worker
-        self._vec: AsyncVectorEnv | None = None
+        self._pool: WorkerPool | None = None
         self._local = None
+        self._block: SharedBlock | None = None
         self._closed = False
         self._closed_why = ""
+        self._repeat = 1
         self._trace = StepTrace(num_envs, trace_steps) if trace_steps else None
         spec = None if self._trace is None else self._trace.spec
         makers = [MakeWorker(env_id, maniskill_kwargs, index=i, trace=spec) for i in range(num_envs)]
         try:
-            if num_envs > self._first:
-                self._vec = AsyncVectorEnv(
-                    makers[self._first :],
-                    shared_memory=True,
-                    copy=False,  # we copy once, into torch
-                    context=context,
-                    autoreset_mode=AutoresetMode.DISABLED,
-                )
+            if num_envs > self._first:  # the workers make their envs while this process makes its own
+                self._pool = WorkerPool(makers[self._first :], context)
             if in_process:
                 self._local = makers[0].make()
                 if spec is not None:  # sub-env 0 stamps its columns as a worker does, with its own count
                     self._local.trace = StepTrace(*spec)
-        except (EOFError, ConnectionError) as err:  # a worker died before gymnasium's own error handling
+                kinds = (self._local.observation_space, self._local.action_space, self._local.render_mode)
+            if self._pool is not None:
+                kinds = self._pool.ready()[0]
+            space, self.single_action_space, self.render_mode = kinds
+            self._block = SharedBlock(Layout(space, self.single_action_space, num_envs))
+            if self._pool is not None:
+                self._pool.attach(self._block.layout, self._block.name)
+        except (EOFError, OSError) as err:  # a worker died while starting
             self.close()
             raise RuntimeError(
                 f"CPUVectorEnv({env_id!r}, {num_envs}): a worker process died while starting (its traceback is "
                 f"printed above). Workers start with context={context!r}, which imports the main script again: "
                 "in a script, build envs only under `if __name__ == '__main__':`."
             ) from err
+        except WorkerFailure as failure:  # a worker's make raised: that error, as the parent's own make would
+            self.close()
+            if failure.error is not None:
+                raise failure.error from None
+            raise RuntimeError(f"CPUVectorEnv({env_id!r}, {num_envs}): {failure.what}") from None
         except BaseException:
             self.close()
             raise
-        if self._local is not None:
-            space, self.single_action_space = self._local.observation_space, self._local.action_space
-            self.render_mode = self._local.render_mode
-            self._row = create_empty_array(space, n=1)  # sub-env 0's last step, as a worker's in shared memory
-        else:
-            space, self.single_action_space = self._vec.single_observation_space, self._vec.single_action_space
-            self.render_mode = self._vec.render_mode
-            self._row = None
         self.single_observation_space = space[OBS]
         self._info_space = space[INFO]
-        self.spec = gym.spec(env_id)
-        self._repeat = 1
 
     @property
     def unwrapped(self) -> CPUVectorEnv:
@@ -192,70 +187,59 @@ class CPUVectorEnv:
 
     # ---------------------------------------------------------------- data
     def _read(self) -> tuple[Any, torch.Tensor, torch.Tensor, torch.Tensor, dict]:
-        step = join_rows(self._row, None if self._vec is None else self._vec.observations)
+        step = self._block.read()
         return step[OBS], step[REWARD], step[TERMINATED], step[TRUNCATED], step[INFO]
 
-    def _together(self, call: str, send: Any, here: Any, collect: Any) -> tuple[Any, Any]:
-        """``send(vec)`` to the workers, ``here()`` on sub-env 0 while they work, then
-        ``collect(vec)``; returns (``here``'s result, ``collect``'s). ``send=None``: no worker
-        takes part; ``here=None``: sub-env 0 does not. The workers' results are collected even
-        when sub-env 0 raises, so that no call is left pending; a dead worker is reported."""
+    def _check_open(self, call: str) -> None:
         if self._closed:
             raise RuntimeError(
                 f"{self!r} is closed" + (f" ({self._closed_why})" if self._closed_why else "") + f": it cannot "
                 f"{call}() any more. Make a new env."
             )
-        vec = self._vec if send is not None else None
-        if vec is not None:
+
+    def _together(self, call: str, send: Any, here: Any, collect: Any) -> Any:
+        """``send(pool)`` to the workers, ``here()`` on sub-env 0 while they work, then
+        ``collect(pool)``; returns ``collect``'s result. ``send=None``: no worker takes part;
+        ``here=None``: sub-env 0 does not. The workers' answers are collected even when sub-env
+        0 raises, so that none is left pending; a worker that raised or died closes the env."""
+        self._check_open(call)
+        pool = self._pool if send is not None else None
+        if pool is not None:
             try:
-                send(vec)
-            except (EOFError, OSError) as err:
-                raise self._worker_died(call, err) from err
-        mine = theirs = None
+                send(pool)
+            except (EOFError, OSError, pickle.PicklingError, TypeError, AttributeError) as err:
+                raise self._worker_failed(call, err) from err
+        theirs = None
         try:
             if here is not None and self._local is not None:
-                mine = here()
+                here()
         finally:
-            if vec is not None:
+            if pool is not None:
                 try:
-                    theirs = collect(vec)
-                except (EOFError, OSError) as err:
-                    raise self._worker_died(call, err) from err
-                except Exception as err:
-                    # gymnasium re-raises a worker's exception after shutting that worker down:
-                    # the env cannot go on with a sub-env missing.
-                    if any(pipe is None for pipe in vec.parent_pipes):
-                        raise self._worker_died(call, err) from err
-                    raise
-        return mine, theirs
+                    theirs = collect(pool)
+                except (EOFError, OSError, WorkerFailure) as err:
+                    raise self._worker_failed(call, err) from getattr(err, "error", None) or err
+        return theirs
 
     def step(
         self, action: torch.Tensor | Mapping[str, torch.Tensor]
     ) -> tuple[Any, torch.Tensor, torch.Tensor, torch.Tensor, dict]:
-        action = to_numpy(action)
-        first = None
-        if self._local is not None:
-            first, action = split_first(action)
-        trace = self._trace
-        if trace is None:
-            mine, _ = self._together(
-                "step",
-                lambda vec: vec.step_async(action),
-                lambda: self._local.step(first)[0],  # while the workers step theirs
-                lambda vec: vec.step_wait(),
-            )
-        else:
+        self._check_open("step")
+        block, trace = self._block, self._trace
+        if trace is not None:
             trace.stamp(SEND)
-            mine, _ = self._together(
-                "step",
-                lambda vec: vec.step_async(action),
-                lambda: (self._local.step(first)[0], trace.stamp(HERE_END))[0],
-                lambda vec: vec.step_wait(),
-            )
+        block.write_actions(to_numpy(action))
+        local = self._local
+
+        def here() -> None:
+            block.write_row(0, local.step(block.action_row(0))[0])
+            if trace is not None:
+                trace.stamp(HERE_END)
+
+        self._together("step", WorkerPool.wake, here, WorkerPool.wait)
+        if trace is not None:
             trace.stamp(COLLECT_END)
             trace.count += 1
-        if mine is not None:
-            write_row(self._row, mine)
         return self._read()
 
     def trace(self) -> dict:
@@ -280,20 +264,22 @@ class CPUVectorEnv:
             # ManiSkill's convention: one row of env_states per env being reset, in env order.
             # Every sub-env being reset gets the rows and picks its own (one message to all).
             options[SUB_ENV_STATES] = (np.flatnonzero(mask).tolist(), states["env_states"])
-        workers = mask[self._first :]
-        worker_options = dict(options)
-        if not workers.all():
-            worker_options["reset_mask"] = workers
-        mine, _ = self._together(
+        block, local = self._block, self._local
+        workers = [i for i in range(self.num_envs - self._first) if mask[self._first + i]]
+
+        def send(pool: WorkerPool) -> None:
+            for i in workers:
+                pool.send(i, "reset", seed=seeds[self._first + i], options=options or None)
+
+        def here() -> None:
+            block.write_row(0, local.reset(seed=seeds[0], options=options or None)[0])
+
+        self._together(
             "reset",
-            (lambda vec: vec.reset_async(seed=seeds[self._first :], options=worker_options or None))
-            if workers.any()
-            else None,
-            (lambda: self._local.reset(seed=seeds[0], options=options or None)[0]) if mask[0] else None,
-            lambda vec: vec.reset_wait(),
+            send if workers else None,
+            here if mask[0] else None,
+            lambda pool: pool.collect(workers),
         )
-        if mine is not None:
-            write_row(self._row, mine)
         obs, _, _, _, info = self._read()
         return obs, info
 
@@ -316,15 +302,16 @@ class CPUVectorEnv:
     def call(self, name: str, *args: Any, **kwargs: Any) -> tuple[Any, ...]:
         """Each sub-env's method ``name`` called with these arguments (its value, for an attribute),
         in sub-env order, as gymnasium's ``AsyncVectorEnv.call``."""
+        mine = []
 
-        def here() -> Any:
+        def here() -> None:
             attr = self._local.get_wrapper_attr(name)
-            return attr(*args, **kwargs) if callable(attr) else attr
+            mine.append(attr(*args, **kwargs) if callable(attr) else attr)
 
-        mine, theirs = self._together(
-            name, lambda vec: vec.call_async(name, *args, **kwargs), here, lambda vec: vec.call_wait()
+        theirs = self._together(
+            name, lambda pool: pool.send_all("call", name, *args, **kwargs), here, WorkerPool.collect_all
         )
-        return ((mine,) if self._local is not None else ()) + (tuple(theirs) if theirs is not None else ())
+        return tuple(mine) + (tuple(theirs) if theirs is not None else ())
 
     @property
     def repeat(self) -> int:
@@ -366,31 +353,34 @@ class CPUVectorEnv:
         """Every sub-env's ``render()``, concatenated: ``[N, H, W, 3]`` uint8 for ``rgb_array``."""
         return torch.cat([torch.as_tensor(f) for f in self.call("render")])
 
-    def _worker_died(self, call: str, err: BaseException) -> RuntimeError:
+    def _worker_failed(self, call: str, err: BaseException) -> RuntimeError:
         """Stops the sub-envs (the others would wait for the one that failed) and says what happened."""
-        what, where = describe_failure(self._vec, self._first, err)
-        self._closed = True
-        self._closed_why = f"{what} during {call}()"
-        stop_workers(self._vec)
-        if self._local is not None:
-            self._local.close()
+        failure = self._pool.describe(err)
+        self._closed_why = f"{failure.what} during {call}()"
+        self.close()
         return RuntimeError(
-            f"CPUVectorEnv({self.spec.id}): {what} during {call}(); the env is closed ({where}). "
+            f"CPUVectorEnv({self.spec.id}): {failure.what} during {call}(); the env is closed ({failure.where}). "
             "Close it and make a new env."
         )
 
     def close(self) -> None:
-        if not self._closed:
-            self._closed = True
-            if self._vec is not None:
-                self._vec.close()
-            if self._local is not None:
-                if self._local.trace is not None:
-                    self._local.trace.close()
-                self._local.close()
-            if self._trace is not None:  # the rows stay readable with trace()
-                self._trace_rows = self._trace.rows()
-                self._trace.close()
+        if self._closed:
+            return
+        self._closed = True
+        if self._pool is not None:
+            if self._closed_why:  # after a failure: the workers may be anywhere in a call
+                self._pool.stop()
+            else:
+                self._pool.close()
+        if self._local is not None:
+            if self._local.trace is not None:
+                self._local.trace.close()
+            self._local.close()
+        if self._block is not None:
+            self._block.close()
+        if self._trace is not None:  # the rows stay readable with trace()
+            self._trace_rows = self._trace.rows()
+            self._trace.close()
 
     def __repr__(self) -> str:
         repeat = f", repeat={self._repeat}" if self._repeat != 1 else ""

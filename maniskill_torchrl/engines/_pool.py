@@ -1,0 +1,151 @@
+"""The worker processes of :class:`~maniskill_torchrl.CPUVectorEnv`, seen from the parent: start
+them, wake them for a step, send them the rarer calls, collect their answers, and, when one
+fails, say which and stop them all (the others would wait forever for a sub-env that is gone).
+
+One duplex pipe per worker (``_worker.serve`` is the other end). A step is one byte each way;
+the data lies in the shared block (``_shared.py``). Like ``cpu_vector.py``, this module imports
+neither TorchRL nor the rest of the library.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import pickle
+from typing import Any
+
+from maniskill_torchrl.engines._worker import DONE, STEP, MakeWorker, serve
+
+__all__ = ["WorkerFailure", "WorkerPool"]
+
+
+class WorkerFailure(Exception):
+    """A worker raised or died. ``what`` says which and how, ``where`` where to look;
+    ``error`` is the worker's own exception where it could be sent."""
+
+    def __init__(self, what: str, where: str, error: BaseException | None = None) -> None:
+        super().__init__(what)
+        self.what, self.where, self.error = what, where, error
+
+
+class WorkerPool:
+    """Worker processes for the sub-envs ``makers[i].index``, started at once (each makes its env
+    while the parent goes on); :meth:`ready` waits for them."""
+
+    def __init__(self, makers: list[MakeWorker], context: str) -> None:
+        ctx = multiprocessing.get_context(context)
+        self.indices = [make.index for make in makers]
+        self.processes: list = []
+        self.pipes: list = []
+        for make in makers:
+            mine, theirs = ctx.Pipe(duplex=True)
+            process = ctx.Process(target=serve, args=(theirs, make), name=f"CPUVectorEnv-{make.index}", daemon=True)
+            self.processes.append(process)
+            self.pipes.append(mine)
+            process.start()
+            theirs.close()  # the worker's end lives in the worker only: its death closes the pipe
+        self.closed = False
+
+    def ready(self) -> list[tuple]:
+        """Each worker's ``(result space, action space, render mode)``, once it has made its env."""
+        return [self._answer(i) for i in range(len(self.pipes))]
+
+    def attach(self, layout: Any, name: str) -> None:
+        """Every worker maps the shared block ``name`` laid out as ``layout``."""
+        self.send_all("attach", layout, name)
+        self.collect_all()
+
+    # ------------------------------------------------------------- a step
+    def wake(self) -> None:
+        """Every worker steps with its row of the block's actions."""
+        for pipe in self.pipes:
+            pipe.send_bytes(STEP)
+
+    def wait(self) -> None:
+        """Returns once every worker has written its step."""
+        for i, pipe in enumerate(self.pipes):
+            answer = pipe.recv_bytes()
+            if answer != DONE:
+                self._raise(i, answer)
+
+    # ------------------------------------------------------------- other calls
+    def send(self, i: int, command: str, *args: Any, **kwargs: Any) -> None:
+        """``command`` to worker ``i`` (its position here, not its sub-env index)."""
+        self.pipes[i].send_bytes(pickle.dumps((command, args, kwargs), protocol=pickle.HIGHEST_PROTOCOL))
+
+    def send_all(self, command: str, *args: Any, **kwargs: Any) -> None:
+        message = pickle.dumps((command, args, kwargs), protocol=pickle.HIGHEST_PROTOCOL)
+        for pipe in self.pipes:
+            pipe.send_bytes(message)
+
+    def collect(self, positions: list[int]) -> list:
+        """The answers of the workers at ``positions``, in that order."""
+        return [self._answer(i) for i in positions]
+
+    def collect_all(self) -> list:
+        return self.collect(list(range(len(self.pipes))))
+
+    def _answer(self, i: int) -> Any:
+        answer = self.pipes[i].recv_bytes()
+        status, *value = pickle.loads(answer)
+        if status == "error":
+            self._raise(i, answer)
+        return value[0] if len(value) == 1 else tuple(value)
+
+    def _raise(self, i: int, answer: bytes) -> None:
+        _, error, name, message = pickle.loads(answer)
+        raise WorkerFailure(
+            f"worker(s) of sub-env(s) [{self.indices[i]}] raised {name}: {message}",
+            "the worker's traceback is printed above",
+            error,
+        )
+
+    # ------------------------------------------------------------- failures and the end
+    def describe(self, err: BaseException) -> WorkerFailure:
+        """What ``err`` (from a pipe) means: a worker that died, or a message that could not be sent."""
+        if isinstance(err, WorkerFailure):
+            return err
+        dead = [index for index, p in zip(self.indices, self.processes) if not p.is_alive()]
+        if not dead and isinstance(err, (EOFError, OSError)):  # a worker that closed its pipe is exiting
+            for process in self.processes:
+                process.join(0.5)
+            dead = [index for index, p in zip(self.indices, self.processes) if not p.is_alive()]
+        if dead:
+            return WorkerFailure(
+                f"worker(s) of sub-env(s) {dead} died",
+                "look for the worker's own error above (a crash in the simulator, or out of memory)",
+            )
+        return WorkerFailure(
+            f"sending to the workers failed ({type(err).__name__}: {err})",
+            "what was sent could not be pickled to the workers",
+        )
+
+    def stop(self) -> None:
+        """Terminates every live worker and closes the pipes (after a failure)."""
+        self.closed = True
+        for process in self.processes:
+            if process.is_alive():
+                process.terminate()
+        for pipe in self.pipes:
+            pipe.close()
+        for process in self.processes:
+            process.join(5)
+
+    def close(self, timeout: float = 5.0) -> None:
+        """Asks every worker to close its env, waits for them, and stops what is left."""
+        if self.closed:
+            return
+        self.closed = True
+        for pipe in self.pipes:
+            try:
+                pipe.send_bytes(pickle.dumps(("close", (), {})))
+            except (OSError, EOFError):
+                pass
+        for pipe in self.pipes:
+            try:
+                if pipe.poll(timeout):
+                    pipe.recv_bytes()
+            except (OSError, EOFError):
+                pass
+        for process in self.processes:
+            process.join(timeout)
+        self.stop()
