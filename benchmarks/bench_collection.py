@@ -39,6 +39,12 @@ Task PickCube-v1, ``obs_mode="state"``, random actions, ``max_episode_steps=50``
   batch instead of per step), the same worker env as ``parallel``; ``multisync:unb``: the
   workers' envs ``ManiSkillEnv(id, batch_size=[])`` (no ``CPUUnbatch``), as for ``parallel``.
 
+- ``async``: ``AsyncBatchedCollector([make_env] * N, policy, env_backend="multiprocessing")``,
+  TorchRL's collector without a lockstep (each env stepped as soon as its action is ready), the
+  workers' envs ``ManiSkillEnv(id, batch_size=[])`` (-> ``ActionRepeat``), a ``Linear -> Tanh``
+  policy; ``async:auto``: ``policy_factory=...`` and ``transport="auto"`` (the workers reach a
+  policy process directly, TorchRL's set-up for process workers).
+
 Frames are agent steps (the collector's frames; gym: N per ``step``). Each run is a fresh
 Python process (this script with ``--child``) that builds the pipeline, warms up untimed
 (first reset and one batch / 50 steps), then collects for ``--seconds`` of wall time,

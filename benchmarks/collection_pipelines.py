@@ -302,7 +302,51 @@ def child_multisync(n: int, repeat: int, seconds: float, opts: dict) -> dict:
     return _time_collector(collector, seconds, meter)
 
 
-CHILDREN = {"gym": child_gym, "batched": child_batched, "parallel": child_parallel, "multisync": child_multisync}
+def _async_policy(obs_dim: int, act_dim: int):
+    """A batch-agnostic ``Linear -> Tanh`` policy, seeded (module level: a policy process rebuilds it)."""
+    import torch
+    from tensordict.nn import TensorDictModule
+
+    torch.manual_seed(SEED)
+    return TensorDictModule(
+        torch.nn.Sequential(torch.nn.Linear(obs_dim, act_dim), torch.nn.Tanh()),
+        in_keys=["observation"],
+        out_keys=["action"],
+    )
+
+
+def child_async(n: int, repeat: int, seconds: float, opts: dict) -> dict:
+    """``AsyncBatchedCollector([make_env] * N, policy=..., env_backend="multiprocessing")``: TorchRL's
+    way past lockstep (docs/guides/cpu_performance.md, "Past lockstep"), each worker's env
+    ``ManiSkillEnv(id, batch_size=[])`` (-> ActionRepeat), stepped as soon as its action is ready;
+    the policy a batch-agnostic ``Linear -> Tanh`` (``RandomPolicy`` takes one fixed batch)."""
+    import functools
+
+    import torch
+    from torchrl.collectors import AsyncBatchedCollector
+
+    torch.set_num_threads(1)
+    meter = _CPUMeter()
+    make = functools.partial(_worker_env, repeat, batch_size=[])
+    probe = make()
+    obs_dim, act_dim = probe.observation_spec["observation"].shape[-1], probe.action_spec.shape[-1]
+    probe.close()
+    policy = functools.partial(_async_policy, obs_dim, act_dim)
+    # auto: the workers reach a policy process directly (TorchRL's fast set-up for process workers)
+    where = {"policy_factory": policy, "transport": "auto"} if "auto" in opts else {"policy": policy()}
+    collector = AsyncBatchedCollector(
+        create_env_fn=[make] * n, frames_per_batch=EPISODE * n, total_frames=-1, env_backend="multiprocessing", **where
+    )
+    return _time_collector(collector, seconds, meter)
+
+
+CHILDREN = {
+    "gym": child_gym,
+    "batched": child_batched,
+    "parallel": child_parallel,
+    "multisync": child_multisync,
+    "async": child_async,
+}
 
 
 def run_child(spec: str, n: int, repeat: int, seconds: float) -> None:
