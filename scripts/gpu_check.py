@@ -10,8 +10,9 @@ of versions, C extensions and one fresh process's import times. Stages, in this 
 its own limit and all inside --budget seconds from the start (a stage that would get under 30 s is
 skipped and says so; one that fails does not stop the others):
 
-    sweep  benchmarks/bench_collection.py, N = 1 4 8 15, gym's AsyncVectorEnv of CPUGymWrapper
-           against the library's batched env, first, on a quiet machine; each child's start-up
+    sweep  benchmarks/bench_collection.py, N = 1 8 15, repeat 2 (--sweep-pipelines): gym's
+           AsyncVectorEnv of CPUGymWrapper against the README's pipeline and
+           AsyncBatchedCollector, first, on a quiet machine; each child's start-up
            measured and bounded (--startup-limit)
     copy   benchmarks/bench_obs_copy.py --timing (device_copy.json)
     suite  pytest tests (without registry, docs, gpu), xdist -n cores --dist worksteal, JUnit
@@ -255,8 +256,10 @@ def sweep_summary(path: Path) -> dict:
     out = {"complete": d.get("complete", False), "frames_per_s": fps, "child_startup_s": startup}
     if failed:
         out["not_measured"] = failed
-    gym, batched = fps.get("gym", {}), fps.get("batched", {})
-    out["ratio_batched_to_gym"] = {n: round(batched[n] / gym[n], 2) for n in gym if n in batched}
+    gym = next((v for s, v in fps.items() if s.split(":")[0] == "gym"), {})
+    out["ratio_to_gym"] = {
+        s: {n: round(v[n] / gym[n], 2) for n in gym if n in v} for s, v in fps.items() if s.split(":")[0] != "gym"
+    }
     out["scaling_vs_n_times_n1"] = {
         s: {n: round(v[n] / (n * v[1]), 2) for n in v if n > 1} for s, v in fps.items() if 1 in v
     }
@@ -273,8 +276,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--stages", nargs="*", default=["sweep", "copy", "suite", "gpu"])
     p.add_argument("--python", default=sys.executable)
     p.add_argument("--site", default="/tmp/maniskill_torchrl-gpu-site")
-    p.add_argument("--sweep-n", type=int, nargs="+", default=[1, 4, 8, 15])
+    p.add_argument("--sweep-n", type=int, nargs="+", default=[1, 8, 15])
     p.add_argument("--sweep-seconds", type=float, default=2.0, help="timed collection per run (2)")
+    p.add_argument("--sweep-rounds", type=int, default=1, help="alternating rounds of the sweep (1)")
+    p.add_argument(
+        "--sweep-pipelines",
+        nargs="+",
+        default=["batched:t1,rp,dev,em", "async:auto"],
+        help="bench_collection.py contenders besides gym, repeat 2 (the README's pipeline, past lockstep)",
+    )
     p.add_argument("--startup-limit", type=float, default=40, help="start-up limit of one benchmark child (40 s)")
     p.add_argument("--sweep-s", type=float, default=165, help="sweep limit (165 s)")
     p.add_argument("--copy-s", type=float, default=90, help="bench_obs_copy --timing limit (90 s)")
@@ -317,7 +327,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"  {k:6s} {v['status']:9s} {wall:6.1f}s / {limit}s {counts} {v.get('note', '')}")
             for t, msg in list(v.get("failed_tests", {}).items())[:30]:
                 print(f"         FAILED {t}: {msg[:200]}")
-            for key in ("frames_per_s", "ratio_batched_to_gym", "scaling_vs_n_times_n1", "child_startup_s",
+            for key in ("frames_per_s", "ratio_to_gym", "scaling_vs_n_times_n1", "child_startup_s",
                         "not_measured", "result"):  # fmt: skip
                 if v.get(key):
                     print(f"         {key}: {json.dumps(v[key])}")
@@ -369,8 +379,9 @@ def main(argv: list[str] | None = None) -> int:
         if _has(py, env, "pytest_timeout"):
             pytest += ["--timeout", str(args.per_test_s)]
         cmd = {
-            "sweep": [py, "benchmarks/bench_collection.py", "--n", *map(str, args.sweep_n), "--repeat", "1",
-                      "--rounds", "1", "--seconds", str(args.sweep_seconds), "--pipelines", "gym", "batched",
+            "sweep": [py, "benchmarks/bench_collection.py", "--n", *map(str, args.sweep_n), "--repeat", "2",
+                      "--rounds", str(args.sweep_rounds), "--seconds", str(args.sweep_seconds),
+                      "--pipelines", *args.sweep_pipelines,
                       "--max-wait", "3", "--retries", "0", "--startup-limit", str(args.startup_limit),
                       "--timeout", str(args.startup_limit + args.sweep_seconds + 20), "--out", str(out / "sweep.json")],
             "copy": [py, "benchmarks/bench_obs_copy.py", "--timing", "--out", str(out / "device_copy.json")],
