@@ -2,7 +2,7 @@
 
 On the GPU sim (and the CPU sim rendering with ``sapien_cuda``) ManiSkill hands out buffers that
 its next step or render overwrites, so the wrapper copies every observation entry it returns, once,
-onto ``env.device`` (``maniskill_layout._leaf``). This times that copy on the CPU, with the
+onto ``env.device`` (``envs/maniskill.py``, ``_leaf``). This times that copy on the CPU, with the
 wrapper's own code, on PickCube-v1's real ``obs_mode="rgb"`` observation at 128 x 128 (agent and
 extra state, camera parameters, ``sensor_data/base_camera/rgb`` uint8), tiled to the batch:
 
@@ -77,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     from maniskill_torchrl._private import new_tensordict
-    from maniskill_torchrl.maniskill_layout import _leaf, _mapped
+    from maniskill_torchrl.envs.maniskill import _leaf, _mapped
 
     logging.getLogger("mani_skill").setLevel(logging.ERROR)
     torch.set_num_threads(1)

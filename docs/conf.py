@@ -134,9 +134,8 @@ def _documented_library_classes() -> set[str]:
 
 
 def _public_bases(app, name, obj, options, bases):
-    # Private bases (TorchRL's _EnvWrapper) and the library's internal mixins (the wrapper's
-    # layout, saved states...: classes no public module exports) say nothing to a reader. When
-    # every base is private, the first public class up the MRO (TorchRL's EnvBase) stands in.
+    # Private bases (TorchRL's _EnvWrapper) say nothing to a reader. When every base is
+    # private, the first public class up the MRO (TorchRL's EnvBase) stands in.
     documented = _documented_library_classes()
 
     def public(b):
@@ -151,8 +150,8 @@ def _public_bases(app, name, obj, options, bases):
 
 
 def _skip_members_of_other_projects(app, what, name, obj, skip, options):
-    # A class documented with :inherited-members: (ManiSkillWrapper, whose get_state / render come
-    # from the library's own mixins) lists what the library defines, not TorchRL's or torch's.
+    # A class documented with :inherited-members: (ManiSkillEnv, whose get_state / render come
+    # from ManiSkillWrapper) lists what the library defines, not TorchRL's or torch's.
     inherited = getattr(options, "inherited_members", None)
     if inherited is None and hasattr(options, "get"):
         inherited = options.get("inherited_members")

@@ -44,8 +44,8 @@ from maniskill_torchrl._mp import prefer_spawn  # noqa: E402
 prefer_spawn()
 
 _EXPORTS = {
-    "ManiSkillEnv": "maniskill_torchrl.env",
-    "ManiSkillWrapper": "maniskill_torchrl.env",
+    "ManiSkillEnv": "maniskill_torchrl.envs",
+    "ManiSkillWrapper": "maniskill_torchrl.envs",
     "CPUVectorEnv": "maniskill_torchrl.engines.cpu_vector",
     "ActionRepeat": "maniskill_torchrl.transforms",
     "CPUUnbatch": "maniskill_torchrl.transforms",
@@ -60,7 +60,7 @@ __all__ = [*_EXPORTS, "__version__"]
 if TYPE_CHECKING:
     from maniskill_torchrl._maniskill import RenderDeviceError
     from maniskill_torchrl.engines.cpu_vector import CPUVectorEnv
-    from maniskill_torchrl.env import ManiSkillEnv, ManiSkillWrapper
+    from maniskill_torchrl.envs import ManiSkillEnv, ManiSkillWrapper
     from maniskill_torchrl.transforms import (
         ActionRepeat,
         CPUUnbatch,

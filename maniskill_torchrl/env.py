@@ -1,15 +1,20 @@
-"""ManiSkill 3 tasks as native TorchRL environments: the public home of both env classes.
+"""Deprecated path of ManiSkillEnv and ManiSkillWrapper, kept for one release.
 
-- :class:`ManiSkillWrapper` (``maniskill_wrapper.py``): wraps a ManiSkill env made with
-  ``gym.make`` (or a :class:`~maniskill_torchrl.CPUVectorEnv`).
-- :class:`ManiSkillEnv` (``maniskill_env.py``): makes the ManiSkill env from a task id, then wraps it.
-
-``from maniskill_torchrl.env import ManiSkillEnv, ManiSkillWrapper`` keeps working from here.
+The ManiSkill adapter is one file, ``maniskill_torchrl/envs/maniskill.py``. Import
+``from maniskill_torchrl import ManiSkillEnv, ManiSkillWrapper`` instead; importing this module warns.
 """
 
 from __future__ import annotations
 
-from maniskill_torchrl.maniskill_env import ManiSkillEnv
-from maniskill_torchrl.maniskill_wrapper import ManiSkillWrapper
+import warnings
 
-__all__ = ["ManiSkillWrapper", "ManiSkillEnv"]
+from maniskill_torchrl.envs.maniskill import ManiSkillEnv, ManiSkillWrapper
+
+__all__ = ["ManiSkillEnv", "ManiSkillWrapper"]
+
+warnings.warn(
+    "maniskill_torchrl.env is deprecated and will be removed in the next release: the ManiSkill adapter "
+    "moved to maniskill_torchrl.envs.maniskill. Use `from maniskill_torchrl import ManiSkillEnv, ManiSkillWrapper`.",
+    DeprecationWarning,
+    stacklevel=2,
+)

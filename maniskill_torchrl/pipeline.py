@@ -11,7 +11,7 @@ from typing import Any
 
 from torchrl.envs import Compose, TransformedEnv
 
-from maniskill_torchrl.env import ManiSkillEnv
+from maniskill_torchrl.envs import ManiSkillEnv
 from maniskill_torchrl.masked_merge import check_repeat
 from maniskill_torchrl.transforms import ActionRepeat, EpisodeMetrics, IgnoreTerminations
 

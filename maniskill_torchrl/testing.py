@@ -72,7 +72,7 @@ def check_maniskill_env(
     from torchrl.envs.utils import check_env_specs
 
     from maniskill_torchrl.engines.cpu_vector import CPUVectorEnv
-    from maniskill_torchrl.maniskill_env import ManiSkillEnv
+    from maniskill_torchrl.envs import ManiSkillEnv
 
     where = f"check_maniskill_env({env_id!r}, num_envs={num_envs})"
     env = ManiSkillEnv(env_id, num_envs=num_envs, **maniskill_kwargs)

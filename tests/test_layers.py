@@ -1,9 +1,10 @@
 """The package's layers, read statically from its imports (``ast``, nothing imported).
 
-- The env core and its helpers import neither the CPU engine (``maniskill_torchrl.engines``, or
-  its deprecated aliases ``cpu_vector`` / ``cpu_worker`` / ``cpu_failures``, or the root
-  package's ``CPUVectorEnv``) nor gymnasium's vector module: they read the engine's declared
-  capabilities instead. Only the factory (``maniskill_env.py``) picks an engine.
+- The env core's helpers import neither the CPU engine (``maniskill_torchrl.engines``, or its
+  deprecated aliases ``cpu_vector`` / ``cpu_worker`` / ``cpu_failures``, or the root package's
+  ``CPUVectorEnv``) nor gymnasium's vector module. In the adapter's one file
+  (``envs/maniskill.py``) only the factory, ``ManiSkillEnv``, names the engine: the wrapper reads
+  the engine's declared capabilities instead.
 - The transforms and the gym shim import no engine.
 - The engine imports neither the gym shim, the transforms, nor the env core.
 
@@ -24,23 +25,21 @@ ROOT = Path(__file__).resolve().parents[1]
 PKG = "maniskill_torchrl"
 PKG_DIR = ROOT / PKG
 
-# The env core and the helpers below it (DESIGN.md, "Layers").
-CORE = [
-    "maniskill_wrapper",
-    "maniskill_layout",
-    "saved_states",
-    "seeding",
+# The helpers below the env core (DESIGN.md, "Layers"): none reaches the engine.
+CORE_HELPERS = [
     "errors",
     "specs",
-    "worker_repeat",
     "host_gather",
     "masked_merge",
     "episode_stats",
     "numpy_sum",
+    "envs/_seeding",
 ]
 HELPERS = sorted(p.stem for p in PKG_DIR.glob("_*.py") if not p.name.startswith("__"))
 ENGINE = ("engines", "cpu_vector", "cpu_worker", "cpu_failures", "CPUVectorEnv")
-ENV_CORE = ("maniskill_wrapper", "maniskill_layout", "saved_states", "errors", "worker_repeat", "maniskill_env", "env")
+# The adapter (envs/), its deprecated paths, and the checks below it.
+ENV_CORE = ("envs", "errors", "maniskill_wrapper", "maniskill_env", "env")
+ADAPTER = PKG_DIR / "envs" / "maniskill.py"
 
 
 def _is_engine(name: str) -> bool:
@@ -115,11 +114,41 @@ def _files(*names: str) -> list[Path]:
     return [PKG_DIR / f"{n}.py" for n in names]
 
 
-@pytest.mark.parametrize("path", _files(*CORE, *HELPERS), ids=lambda p: p.name)
-def test_the_core_imports_no_engine_and_no_gymnasium_vector(path: Path) -> None:
+def _reaches_engine_or_vector(name: str) -> bool:
+    return _is_engine(name) or name == "gymnasium.vector" or name.startswith("gymnasium.vector.")
+
+
+@pytest.mark.parametrize("path", _files(*CORE_HELPERS, *HELPERS), ids=lambda p: p.name)
+def test_the_helpers_import_no_engine_and_no_gymnasium_vector(path: Path) -> None:
     assert path.is_file(), path
-    bad = _offences(path, lambda n: _is_engine(n) or n == "gymnasium.vector" or n.startswith("gymnasium.vector."))
+    bad = _offences(path, _reaches_engine_or_vector)
     assert not bad, f"{path.name} reaches the CPU engine or gymnasium.vector: {bad}"
+
+
+def _names_used(node: ast.AST) -> set[str]:
+    return {n.id for n in ast.walk(node) if isinstance(n, ast.Name)}
+
+
+def test_only_the_factory_picks_the_engine() -> None:
+    """The adapter's one file holds both classes, as TorchRL's do: ``ManiSkillEnv`` (the factory)
+    picks the CPU engine; ``ManiSkillWrapper`` never names it (it reads the capabilities an
+    engine declares), and nothing else of the file does. Besides the engine, the adapter reaches
+    neither the engine's modules through its other imports nor gymnasium's vector module."""
+    tree = ast.parse(ADAPTER.read_text())
+    classes = {n.name: n for n in tree.body if isinstance(n, ast.ClassDef)}
+    assert {"ManiSkillWrapper", "ManiSkillEnv"} <= set(classes)
+    assert "CPUVectorEnv" in _names_used(classes["ManiSkillEnv"])
+    elsewhere = [n for n in tree.body if not isinstance(n, (ast.ClassDef, ast.ImportFrom, ast.Import))]
+    assert "CPUVectorEnv" not in _names_used(classes["ManiSkillWrapper"])
+    assert all("CPUVectorEnv" not in _names_used(n) for n in elsewhere)
+    others = {n for n in imports(ADAPTER) if not _is_engine(n)}
+    reached = set()
+    for name in others:
+        target = _file(name)
+        if target is not None and name != PKG:
+            reached |= {f"{by} imports {n}" for n, by in closure(target).items() if _reaches_engine_or_vector(n)}
+    assert not {n for n in others if n.startswith("gymnasium.vector")}
+    assert not reached, reached
 
 
 @pytest.mark.parametrize(
@@ -152,9 +181,9 @@ def test_the_engine_imports_no_gym_shim_transform_or_env_core(path: Path) -> Non
 def test_the_parser_sees_what_it_checks() -> None:
     """The factory picks the engine (so an engine import is seen when there is one); the engine
     exists where the layers say; the core list names real modules."""
-    assert any(_is_engine(n) for n in imports(PKG_DIR / "maniskill_env.py"))
+    assert any(_is_engine(n) for n in imports(ADAPTER))
     assert (PKG_DIR / "engines" / "cpu_vector.py").is_file()
-    assert all(p.is_file() for p in _files(*CORE)), CORE
+    assert all(p.is_file() for p in _files(*CORE_HELPERS)), CORE_HELPERS
     assert "_action_repeat" in HELPERS
 
 
@@ -192,3 +221,17 @@ def test_the_old_engine_path_is_a_deprecated_alias() -> None:
     with pytest.warns(DeprecationWarning, match="maniskill_torchrl.engines"):
         old = importlib.import_module("maniskill_torchrl.cpu_vector")
     assert old.CPUVectorEnv is CPUVectorEnv is maniskill_torchrl.CPUVectorEnv
+
+
+@pytest.mark.parametrize("old", ["env", "maniskill_wrapper", "maniskill_env"])
+def test_the_old_adapter_paths_are_deprecated_aliases(old: str) -> None:
+    import importlib
+    import sys
+
+    import maniskill_torchrl
+
+    sys.modules.pop(f"{PKG}.{old}", None)
+    with pytest.warns(DeprecationWarning, match="maniskill_torchrl.envs.maniskill"):
+        module = importlib.import_module(f"{PKG}.{old}")
+    for name in module.__all__:
+        assert getattr(module, name) is getattr(maniskill_torchrl, name)
