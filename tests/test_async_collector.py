@@ -33,31 +33,36 @@ def make_policy(obs_dim: int, act_dim: int):
 
 
 def test_transitions_chain_per_env():
+    """Batches until each env has made two episodes' worth of transitions (one env may start
+    seconds after the other on a loaded machine: the collector does not wait for it)."""
     collector = AsyncBatchedCollector(
         create_env_fn=[make_env] * 2,
         policy_factory=functools.partial(make_policy, 42, 8),
         transport="auto",
         env_backend="multiprocessing",
         frames_per_batch=30,
-        total_frames=60,
+        total_frames=-1,
         transition_chunk_size=1,
     )
+    batches = []
     try:
-        batches = [batch.to_tensordict() for batch in collector]
+        for batch in collector:
+            batches.append(batch.to_tensordict())
+            counts = torch.cat([b["env_index"] for b in batches]).bincount(minlength=2)
+            if (counts >= 2 * EPISODE).all() or len(batches) == 40:
+                break
     finally:
         collector.shutdown()
     data = torch.cat(batches)
-    assert data.shape == (60,)
     env_index = data["env_index"]
-    assert set(env_index.tolist()) == {0, 1}
     for i in (0, 1):
         mine = data[env_index == i]
-        assert len(mine) >= 2 * EPISODE, f"env {i} made {len(mine)} of 60 transitions"
+        assert len(mine) >= 2 * EPISODE, f"env {i} made {len(mine)} of {len(data)} transitions"
         done = mine["next", "done"].squeeze(-1)
         steps = mine["next", "elapsed_steps"]
         # ManiSkill's time limit ends every episode at EPISODE steps (random actions do not succeed)
         assert torch.equal(done, steps == EPISODE), (done, steps)
-        assert torch.equal(mine["action"].abs() <= 1, torch.ones_like(mine["action"], dtype=torch.bool))
+        assert bool((mine["action"].abs() <= 1).all())
         chained = ~done[:-1]
         assert torch.equal(mine["next", "observation"][:-1][chained], mine["observation"][1:][chained])
         assert torch.equal(steps[1:][chained], steps[:-1][chained] + 1)
