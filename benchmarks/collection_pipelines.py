@@ -225,8 +225,8 @@ def batched_collector(n: int, repeat: int, opts: dict):
         from maniskill_torchrl import EpisodeMetrics
 
         transforms.append(EpisodeMetrics())
-    if transforms:
-        env = TransformedEnv(env, Compose(*transforms))
+    if transforms:  # one transform bare, as before `em` existed: a Compose costs each step more
+        env = TransformedEnv(env, transforms[0] if len(transforms) == 1 else Compose(*transforms))
     env.set_seed(SEED)
     policy, kwargs = collector_options(env, opts)
     return Collector(env, policy=policy, frames_per_batch=EPISODE * n, total_frames=-1, **kwargs)
