@@ -74,16 +74,19 @@ class Layout:
             for path, dtype, shape in _leaves(space):
                 offset = -(-offset // _ALIGN) * _ALIGN
                 size = self.num_envs * int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
-                part.append((path, dtype, shape, offset, size))
+                part.append((path, dtype, shape, offset, size, _torch_dtype(dtype)))
                 offset += size
             if part is self.results:
                 self.result_bytes = offset  # what the parent copies per step
         self.nbytes = max(offset, 1)
+        self.result_paths = [leaf[0] for leaf in self.results]
+        self.action_paths = [leaf[0] for leaf in self.actions]
 
     def arrays(self, buf: Any, part: list) -> list[np.ndarray]:
         """``[N, *shape]`` numpy views of ``part``'s leaves over ``buf``."""
         return [
-            np.ndarray((self.num_envs, *shape), dtype, buffer=buf, offset=offset) for _, dtype, shape, offset, _ in part
+            np.ndarray((self.num_envs, *shape), dtype, buffer=buf, offset=offset)
+            for _, dtype, shape, offset, _, _ in part
         ]
 
     def read(self, block: torch.Tensor) -> Any:
@@ -91,10 +94,10 @@ class Layout:
         block's result bytes (``block``: a uint8 tensor over the whole segment)."""
         fresh = block[: self.result_bytes].clone()
         values = [
-            fresh[offset : offset + size].view(_torch_dtype(dtype)).view(self.num_envs, *shape)
-            for _, dtype, shape, offset, size in self.results
+            fresh[offset : offset + size].view(dtype).view(self.num_envs, *shape)
+            for _, _, shape, offset, size, dtype in self.results
         ]
-        return _nest([leaf[0] for leaf in self.results], values)
+        return _nest(self.result_paths, values)
 
 
 class SharedBlock:
@@ -108,8 +111,6 @@ class SharedBlock:
         self._shm = shared_memory.SharedMemory(name=name, create=self._owner, size=layout.nbytes)
         self.results = layout.arrays(self._shm.buf, layout.results)
         self.actions = layout.arrays(self._shm.buf, layout.actions)
-        self._result_paths = [leaf[0] for leaf in layout.results]
-        self._action_paths = [leaf[0] for leaf in layout.actions]
         if self._owner:
             self.tensor = torch.frombuffer(self._shm.buf, dtype=torch.uint8)
             self.tensor.zero_()
@@ -120,7 +121,7 @@ class SharedBlock:
 
     def write_actions(self, action: Any) -> None:
         """The batch's ``[N, ...]`` actions (numpy, or a dict of them) into the block."""
-        for path, dst, src in zip(self._action_paths, self.actions, _flatten(action, self._action_paths)):
+        for path, dst, src in zip(self.layout.action_paths, self.actions, _flatten(action, self.layout.action_paths)):
             if src.shape != dst.shape:  # numpy would broadcast a [1, ...] action to every sub-env
                 where = f" {'/'.join(path)!r}" if path else ""
                 raise ValueError(f"CPUVectorEnv: action{where} of shape {tuple(src.shape)}, expected {dst.shape}.")
@@ -128,12 +129,12 @@ class SharedBlock:
 
     def action_row(self, index: int) -> Any:
         """Sub-env ``index``'s action: copies (the block is rewritten at the next step)."""
-        return _nest(self._action_paths, [a[index].copy() for a in self.actions])
+        return _nest(self.layout.action_paths, [a[index].copy() for a in self.actions])
 
     def write_row(self, index: int, result: Any) -> None:
         """Sub-env ``index``'s unbatched results (a tree as the layout's result space) into its row,
         cast to the leaves' dtypes."""
-        for dst, src in zip(self.results, _flatten(result, self._result_paths)):
+        for dst, src in zip(self.results, _flatten(result, self.layout.result_paths)):
             dst[index] = src
 
     def read(self) -> Any:
