@@ -122,12 +122,11 @@ def check_sizes(ckpt: dict[str, Any], obs_dim: int, act_dim: int, control_mode: 
 
 def specs_from_spaces(observation_space: Any, action_space: Any) -> SimpleNamespace:
     """What ``make_models`` reads from a TorchRL env, from one sub-env's gymnasium spaces (gym code)."""
-    from torchrl.data import Composite, Unbounded
-
-    from maniskill_torchrl.specs import space_to_spec
+    from torchrl.data import Bounded, Composite, Unbounded
 
     cpu = torch.device("cpu")
-    action = space_to_spec(action_space, torch.Size([]), cpu)
+    low, high = (torch.as_tensor(b) for b in (action_space.low, action_space.high))
+    action = Bounded(low=low, high=high, shape=low.shape, dtype=low.dtype, device=cpu)
     obs = Unbounded(shape=torch.Size(observation_space.shape), dtype=torch.float32, device=cpu)
     return SimpleNamespace(
         observation_spec=Composite(observation=obs),

@@ -1,9 +1,8 @@
 """``ParallelEnv`` of single CPU ManiSkill envs, with the settings that keep the cores for the workers.
 
-:class:`ParallelEnv` is TorchRL's :class:`torchrl.envs.ParallelEnv` with four changes, each
+:class:`ManiSkillParallelEnv` is TorchRL's :class:`torchrl.envs.ParallelEnv` with four changes, each
 found by profiling ``Collector(ParallelEnv(N, ManiSkillEnv + CPUUnbatch))`` on 2 cores
-(``benchmarks/bench_collection.py``; the figures are in ``benchmarks/RESULTS.md``,
-"Collection"). The rest of the gap to gymnasium's ``AsyncVectorEnv`` of ManiSkill's
+(the docs' CPU performance guide links the figures). The rest of the gap to gymnasium's ``AsyncVectorEnv`` of ManiSkill's
 ``CPUGymWrapper`` is TorchRL's per-step work in the collector, the ``ParallelEnv`` and the
 worker, on the critical path of every synchronous step, which no setting removes. Make the
 workers' envs ``ManiSkillEnv(id, batch_size=[])`` (unbatched by the env itself: no
@@ -42,10 +41,10 @@ through ``maniskill_torchrl._private``.
 
 Examples:
     >>> from maniskill_torchrl import ManiSkillEnv
-    >>> from maniskill_torchrl.parallel import ParallelEnv
+    >>> from maniskill_torchrl.parallel import ManiSkillParallelEnv
     >>> def make_env():
     ...     return ManiSkillEnv("PickCube-v1", obs_mode="state", batch_size=[])  # unbatched
-    >>> env = ParallelEnv(2, make_env)  # batch [2]; a drop-in for torchrl.envs.ParallelEnv
+    >>> env = ManiSkillParallelEnv(2, make_env)  # batch [2]; a drop-in for torchrl.envs.ParallelEnv
     >>> env.rollout(3)["next", "observation"].shape
     torch.Size([2, 3, 42])
     >>> env.close()
@@ -54,6 +53,7 @@ Examples:
 from __future__ import annotations
 
 import os
+import warnings
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -64,7 +64,7 @@ from torchrl.envs import ParallelEnv as _TorchRLParallelEnv
 from maniskill_torchrl import _private
 from maniskill_torchrl._mp import check_start_method
 
-__all__ = ["ParallelEnv", "set_batch_policy", "usable_cores"]
+__all__ = ["ManiSkillParallelEnv", "set_batch_policy", "usable_cores"]
 
 WaitMode = Literal["auto", "sleep", "spin"]
 
@@ -84,7 +84,7 @@ def set_batch_policy(pid: int) -> bool:
     does not preempt the running one. A ParallelEnv parent sends its step command to each worker
     in turn through a pipe; pipe wake-ups are "synchronous" hints, so the kernel tends to run the
     woken worker on the parent's core at once, and the parent waits a whole time slice before
-    it can send the next command (``benchmarks/RESULTS.md``, "Collection"). With the workers
+    it can send the next command. With the workers
     as batch threads, the parent finishes sending first. Unprivileged; ignores threads that exit
     meanwhile.
     """
@@ -112,7 +112,7 @@ def usable_cores() -> int:
     return os.cpu_count() or 1
 
 
-class ParallelEnv(_TorchRLParallelEnv):
+class ManiSkillParallelEnv(_TorchRLParallelEnv):
     """TorchRL's ``ParallelEnv`` whose parent sleeps while its workers step (see the module docstring).
 
     The output of every step is the same as ``torchrl.envs.ParallelEnv``'s.
@@ -224,3 +224,16 @@ class ParallelEnv(_TorchRLParallelEnv):
                 except Exception:  # noqa: BLE001 - the dead worker is the error to report
                     pass
                 raise RuntimeError(f"Cannot proceed, worker {i} dead (exit code {worker.exitcode}).")
+
+
+def __getattr__(name: str) -> Any:
+    # The class was named ``ParallelEnv`` until 0.1, which shadowed TorchRL's own.
+    if name == "ParallelEnv":
+        warnings.warn(
+            "maniskill_torchrl.parallel.ParallelEnv is deprecated and will be removed in the next release: it is "
+            "now ManiSkillParallelEnv (the old name shadowed torchrl.envs.ParallelEnv).",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return ManiSkillParallelEnv
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -11,9 +11,11 @@ from typing import Any
 
 from torchrl.envs import Compose, TransformedEnv
 
-from maniskill_torchrl.envs import ManiSkillEnv
-from maniskill_torchrl.masked_merge import check_repeat
-from maniskill_torchrl.transforms import ActionRepeat, EpisodeMetrics, IgnoreTerminations
+from maniskill_torchrl._repeat import check_repeat
+from maniskill_torchrl.envs.maniskill import ManiSkillEnv
+from maniskill_torchrl.transforms.action_repeat import ActionRepeat
+from maniskill_torchrl.transforms.episode_metrics import EpisodeMetrics
+from maniskill_torchrl.transforms.terminations import IgnoreTerminations
 
 __all__ = ["make_env"]
 

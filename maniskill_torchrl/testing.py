@@ -9,7 +9,7 @@ own suite uses them, and so can yours (a task you registered with ``@register_en
   raw ManiSkill (and, for one env, the gym shim against ManiSkill's ``CPUGymWrapper``), with the
   same seeds and actions, resets included, and every output against the env's specs and device.
 
-The two assertions are written in ``maniskill_torchrl.assertions`` (no TorchRL or ManiSkill
+The two assertions are written in ``maniskill_torchrl._assertions`` (no TorchRL or ManiSkill
 import); this module exports them beside the env check.
 """
 
@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 
-from maniskill_torchrl.assertions import assert_on_device, assert_tensordict_equal, leaf_keys, tensor_difference
+from maniskill_torchrl._assertions import assert_on_device, assert_tensordict_equal, leaf_keys, tensor_difference
 
 __all__ = ["assert_on_device", "assert_tensordict_equal", "check_maniskill_env"]
 
@@ -72,7 +72,7 @@ def check_maniskill_env(
     from torchrl.envs.utils import check_env_specs
 
     from maniskill_torchrl.engines.cpu_vector import CPUVectorEnv
-    from maniskill_torchrl.envs import ManiSkillEnv
+    from maniskill_torchrl.envs.maniskill import ManiSkillEnv
 
     where = f"check_maniskill_env({env_id!r}, num_envs={num_envs})"
     env = ManiSkillEnv(env_id, num_envs=num_envs, **maniskill_kwargs)
@@ -266,7 +266,7 @@ def _compare_shim(env_id: str, steps: int, seed: int, maniskill_kwargs: dict, wh
     import gymnasium as gym
     from mani_skill.utils.wrappers import CPUGymWrapper as Theirs
 
-    from maniskill_torchrl.wrappers import CPUGymWrapper as Ours
+    from maniskill_torchrl.wrappers.gymnasium import CPUGymWrapper as Ours
 
     kwargs = dict(maniskill_kwargs, num_envs=1)
     theirs = Theirs(gym.make(env_id, **kwargs), record_metrics=True)

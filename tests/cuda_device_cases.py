@@ -29,7 +29,7 @@ import cuda_double  # noqa: E402
 from cuda_double import DEVICE  # noqa: E402
 from helpers import closed_after_test  # noqa: E402, F401  (closed_after_test: the envs fixture)
 from maniskill_torchrl import EpisodeMetrics, ManiSkillEnv  # noqa: E402
-from maniskill_torchrl.parallel import ParallelEnv  # noqa: E402
+from maniskill_torchrl.parallel import ManiSkillParallelEnv  # noqa: E402
 from maniskill_torchrl.testing import assert_on_device, assert_tensordict_equal  # noqa: E402
 
 CPU = torch.device("cpu")
@@ -112,7 +112,7 @@ def test_transformed_serial_parallel_and_collector(envs):
 
     make = functools.partial(ManiSkillEnv, ENV_ID, batch_size=[], **STATE)
     transformed = TransformedEnv(make(), EpisodeMetrics())
-    serial, parallel = SerialEnv(2, make), ParallelEnv(2, make)
+    serial, parallel = SerialEnv(2, make), ManiSkillParallelEnv(2, make)
     envs.extend([transformed, serial, parallel])
     assert_on_device(transformed.rollout(2), CPU)  # EpisodeMetrics' statistics made, then moved
     for env in (transformed, serial, parallel):

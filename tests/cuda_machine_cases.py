@@ -28,7 +28,7 @@ if os.environ.get("MANISKILL_TORCHRL_CUDA_DOUBLE") != "1":
 from cuda_double import DEVICE  # noqa: E402  (the sitecustomize of tests/cuda_site installed it)
 from helpers import closed_after_test, random_actions  # noqa: E402, F401  (closed_after_test: the envs fixture)
 from maniskill_torchrl import EpisodeMetrics, ManiSkillEnv  # noqa: E402
-from maniskill_torchrl.parallel import ParallelEnv  # noqa: E402
+from maniskill_torchrl.parallel import ManiSkillParallelEnv  # noqa: E402
 from maniskill_torchrl.testing import assert_on_device, assert_tensordict_equal  # noqa: E402
 from maniskill_torchrl.wrappers import CPUGymWrapper  # noqa: E402
 
@@ -151,7 +151,7 @@ def test_batched_cpu_env_with_partial_resets(envs):
 
 def test_parallel_env_of_singles(envs):
     make = functools.partial(ManiSkillEnv, ENV_ID, batch_size=[], **KW)
-    env = ParallelEnv(2, make)
+    env = ManiSkillParallelEnv(2, make)
     envs.append(env)
     check_env_specs(env)
     td = env.rollout(STEPS, break_when_any_done=False)

@@ -16,8 +16,8 @@ from hypothesis import strategies as st
 from tensordict import TensorDict
 
 from helpers import bits
-from maniskill_torchrl.episode_stats import EpisodeStats
-from maniskill_torchrl.masked_merge import any_done, merge_step
+from maniskill_torchrl._episode_stats import EpisodeStats
+from maniskill_torchrl._masked_merge import any_done, merge_step
 
 
 @pytest.mark.parametrize(

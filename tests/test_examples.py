@@ -173,12 +173,12 @@ def test_demo_no_video_writes_no_video(tmp_path: Path, monkeypatch: pytest.Monke
         "sim_steps_per_s": 95.0,
         "episodes_finished": 2,
     }
-    monkeypatch.setattr(cli.demo, "_collect", lambda *a: (list(episodes), None, dict(stats)))
+    monkeypatch.setattr(cli, "_collect", lambda *a: (list(episodes), None, dict(stats)))
 
     def no_video(*a, **k):
         raise AssertionError("record_video called with --no-video")
 
-    monkeypatch.setattr(cli.demo, "record_video", no_video)
+    monkeypatch.setattr(cli, "record_video", no_video)
     out = tmp_path / "o"
     assert cli.main(["demo", "--no-video", "--out", str(out)]) == 0
     assert sorted(p.name for p in out.iterdir()) == ["returns.png", "summary.json"]

@@ -37,7 +37,7 @@ from torchrl.envs import Compose, StepCounter, TransformedEnv
 from helpers import alone_where_cuda, assert_same, bits, close_envs, make_gym_env, random_actions
 from maniskill_torchrl import ActionRepeat, EpisodeMetrics, ManiSkillEnv, ManiSkillWrapper
 from maniskill_torchrl._maniskill import canonical_device, reuses_buffers
-from maniskill_torchrl.errors import checked_base_env, checked_device
+from maniskill_torchrl.envs._checks import checked_base_env, checked_device
 from toy_env import ToyEnv
 
 # Ops that read a device value back to the host: each one is a CUDA host sync.

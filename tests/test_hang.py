@@ -1,6 +1,6 @@
 """One script, three engines: gymnasium's forkserver AsyncVectorEnv of the gym shim, then a TorchRL
 ParallelEnv of single CPU envs (TorchRL's own, what users write by habit, then
-``maniskill_torchrl.parallel.ParallelEnv``), then the batched CPU env ``ManiSkillEnv(num_envs=2)``.
+``maniskill_torchrl.parallel.ManiSkillParallelEnv``), then the batched CPU env ``ManiSkillEnv(num_envs=2)``.
 
 The sequence runs as a user's script would, in a subprocess with a timeout (a hang fails the
 tests instead of the session). Why it used to hang (see ``maniskill_torchrl/_mp.py``): the first
@@ -104,9 +104,9 @@ if __name__ == "__main__":
     else:
         ok &= stage("torchrl-parallel", lambda: parallel(TorchRLParallelEnv))
 
-    from maniskill_torchrl.parallel import ParallelEnv
+    from maniskill_torchrl.parallel import ManiSkillParallelEnv
 
-    ok &= stage("library-parallel", lambda: parallel(ParallelEnv))
+    ok &= stage("library-parallel", lambda: parallel(ManiSkillParallelEnv))
 
     from maniskill_torchrl import ManiSkillEnv
 
@@ -227,7 +227,7 @@ def sequence(tmp_path_factory) -> subprocess.CompletedProcess:
 
 @pytest.mark.parametrize("which", ["library", "torchrl"])
 def test_gym_then_parallelenv_then_batched_env(sequence: subprocess.CompletedProcess, which: str) -> None:
-    """``which``: the ParallelEnv of the second stage, ``maniskill_torchrl.parallel.ParallelEnv`` or
+    """``which``: the ParallelEnv of the second stage, ``maniskill_torchrl.parallel.ManiSkillParallelEnv`` or
     TorchRL's own (what users write by habit)."""
     proc = sequence
     out = proc.stdout

@@ -1,21 +1,23 @@
 """The package's layers, read statically from its imports (``ast``, nothing imported).
 
-- The env core's helpers import neither the CPU engine (``maniskill_torchrl.engines``, or its
-  deprecated aliases ``cpu_vector`` / ``cpu_worker`` / ``cpu_failures``, or the root package's
-  ``CPUVectorEnv``) nor gymnasium's vector module. In the adapter's one file
-  (``envs/maniskill.py``) only the factory, ``ManiSkillEnv``, names the engine: the wrapper reads
-  the engine's declared capabilities instead.
-- The transforms and the gym shim import no engine.
-- The engine imports neither the gym shim, the transforms, nor the env core.
+Each module sits in one layer of :data:`LAYERS` (bottom first, as in ``docs/contributing.md``,
+"Module layout"), and imports only from its own layer or those below: the helpers at the bottom,
+the CPU engine beside the envs (only the factory, ``ManiSkillEnv``, names it), the transforms
+and the gym shim above the envs and below data, testing, the recipe and the CLI. No import
+chain inside the package is longer than :data:`MAX_CHAIN` modules.
 
-Every import counts, at any depth: module level, inside functions (lazy imports) and under
-``TYPE_CHECKING``; so do the package modules they import in turn (the root package's own
-``__init__``, whose public names load on first use, is not followed).
+Every import counts, at any depth: module level, inside functions (lazy imports) and
+``importlib.import_module("...")`` calls; imports under ``if TYPE_CHECKING:`` never run and
+are left out of the chains. ``from pkg import name`` is an import of ``pkg.name`` when that is a
+module, else of ``pkg``. The root package (``maniskill_torchrl/__init__.py``, whose public
+names load on first use) is the facade above everything, and no layer.
 """
 
 from __future__ import annotations
 
 import ast
+import importlib
+import sys
 from functools import cache
 from pathlib import Path
 
@@ -24,37 +26,33 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 PKG = "maniskill_torchrl"
 PKG_DIR = ROOT / PKG
+MAX_CHAIN = 7
 
-# The helpers below the env core (DESIGN.md, "Layers"): none reaches the engine.
-CORE_HELPERS = [
-    "errors",
-    "specs",
-    "host_gather",
-    "masked_merge",
-    "episode_stats",
-    "numpy_sum",
-    "envs/_seeding",
+# Bottom first. A module's layer is the first entry whose name is the module or a package above it.
+LAYERS: list[tuple[str, tuple[str, ...]]] = [
+    (
+        "helpers",
+        (
+            "_private",
+            "_mp",
+            "_maniskill",
+            "_moved",
+            "_repeat",
+            "_masked_merge",
+            "_host_gather",
+            "_numpy_sum",
+            "_episode_stats",
+            "_assertions",
+        ),
+    ),
+    ("engines", ("engines",)),
+    ("envs", ("envs", "parallel")),
+    ("transforms and the gym shim", ("transforms", "wrappers")),
+    ("data and testing", ("data", "testing")),
+    ("recipe", ("pipeline",)),
+    ("CLI", ("cli", "__main__")),
 ]
-HELPERS = sorted(p.stem for p in PKG_DIR.glob("_*.py") if not p.name.startswith("__"))
-ENGINE = ("engines", "cpu_vector", "cpu_worker", "cpu_failures", "CPUVectorEnv")
-# The adapter (envs/), its deprecated paths, and the checks below it.
-ENV_CORE = ("envs", "errors", "maniskill_wrapper", "maniskill_env", "env")
 ADAPTER = PKG_DIR / "envs" / "maniskill.py"
-
-
-def _is_engine(name: str) -> bool:
-    return any(name == f"{PKG}.{e}" or name.startswith(f"{PKG}.{e}.") for e in ENGINE)
-
-
-def _file(module: str) -> Path | None:
-    """The source file of a package module, or None (outside the package, or not a module)."""
-    if module != PKG and not module.startswith(PKG + "."):
-        return None
-    path = ROOT.joinpath(*module.split("."))
-    for candidate in (path.with_suffix(".py"), path / "__init__.py"):
-        if candidate.is_file():
-            return candidate
-    return None
 
 
 def _module(path: Path) -> str:
@@ -62,14 +60,42 @@ def _module(path: Path) -> str:
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
+MODULES = {_module(p): p for p in sorted(PKG_DIR.rglob("*.py"))}
+
+
+def layer(module: str) -> int:
+    """The rank of ``module``'s layer in :data:`LAYERS`."""
+    rel = module.removeprefix(PKG + ".")
+    for rank, (_, names) in enumerate(LAYERS):
+        if any(rel == n or rel.startswith(n + ".") for n in names):
+            return rank
+    raise AssertionError(f"{module} is in no layer of tests/test_layers.py's LAYERS: add it to one")
+
+
+def _type_checking(node: ast.AST) -> bool:
+    test = getattr(node, "test", None)
+    return isinstance(node, ast.If) and getattr(test, "id", getattr(test, "attr", None)) == "TYPE_CHECKING"
+
+
+def _nodes(tree: ast.AST):
+    """Every node of ``tree`` but those under ``if TYPE_CHECKING:``."""
+    todo = [tree]
+    while todo:
+        node = todo.pop()
+        yield node
+        if _type_checking(node):
+            todo.extend(node.orelse)
+        else:
+            todo.extend(ast.iter_child_nodes(node))
+
+
 @cache
-def imports(path: Path) -> frozenset[str]:
-    """Every module name ``path`` imports, anywhere in it. ``from a import b`` gives ``a`` and ``a.b``
-    (``b`` may be a submodule); relative imports are resolved."""
-    module = _module(path)
+def imports(module: str) -> frozenset[str]:
+    """The package modules ``module`` imports (its own file only), resolved to module names."""
+    path = MODULES[module]
     package = module if path.name == "__init__.py" else module.rpartition(".")[0]
     names: set[str] = set()
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+    for node in _nodes(ast.parse(path.read_text(), str(path))):
         if isinstance(node, ast.Import):
             names.update(alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom):
@@ -77,52 +103,61 @@ def imports(path: Path) -> frozenset[str]:
             if node.level:
                 anchor = package.split(".")[: len(package.split(".")) - node.level + 1]
                 base = ".".join([*anchor, base] if base else anchor)
-            names.add(base)
-            names.update(f"{base}.{alias.name}" for alias in node.names)
+            subs = {f"{base}.{a.name}" for a in node.names} & MODULES.keys()
+            names.update(subs or {base})
         elif isinstance(node, ast.Call):  # importlib.import_module("...") / __import__("...")
             func = node.func
             called = func.attr if isinstance(func, ast.Attribute) else getattr(func, "id", None)
             if called in ("import_module", "__import__") and node.args and isinstance(node.args[0], ast.Constant):
                 names.add(str(node.args[0].value))
-    return frozenset(names)
+    return frozenset(n for n in names if n in MODULES and n not in (PKG, module))
 
 
-def closure(path: Path) -> dict[str, str]:
-    """Every module ``path`` imports, directly or through the package's modules: name -> the
-    package module that imports it."""
-    seen: dict[str, str] = {}
-    todo = [path]
-    visited: set[Path] = set()
-    while todo:
-        current = todo.pop()
-        if current in visited:
-            continue
-        visited.add(current)
-        for name in imports(current):
-            seen.setdefault(name, _module(current))
-            target = _file(name)
-            if target is not None and name != PKG:  # the root package's names load lazily
-                todo.append(target)
-    return seen
+def longest_chain(module: str, seen: tuple[str, ...] = ()) -> list[str]:
+    """The longest chain of imports from ``module`` that visits no module twice."""
+    best = [module]
+    for name in sorted(imports(module)):
+        if name not in seen:
+            chain = [module, *longest_chain(name, (*seen, module))]
+            best = chain if len(chain) > len(best) else best
+    return best
 
 
-def _offences(path: Path, bad) -> list[str]:
-    return sorted(f"{by} imports {name}" for name, by in closure(path).items() if bad(name))
+@pytest.mark.parametrize("module", [m for m in MODULES if m != PKG])
+def test_no_import_runs_upward(module: str) -> None:
+    up = sorted(n for n in imports(module) if layer(n) > layer(module))
+    assert not up, f"{module} ({LAYERS[layer(module)][0]}) imports from a layer above it: {up}"
 
 
-def _files(*names: str) -> list[Path]:
-    return [PKG_DIR / f"{n}.py" for n in names]
+def test_import_chains_are_short() -> None:
+    chains = {m: longest_chain(m) for m in MODULES}
+    long = {m: " -> ".join(c) for m, c in chains.items() if len(c) > MAX_CHAIN}
+    assert not long, f"import chains longer than {MAX_CHAIN} modules: {long}"
+    assert max(len(c) for c in chains.values()) >= 5  # the parser sees chains at all
 
 
-def _reaches_engine_or_vector(name: str) -> bool:
-    return _is_engine(name) or name == "gymnasium.vector" or name.startswith("gymnasium.vector.")
+def test_the_layer_table_catches_an_upward_import() -> None:
+    """The checks can fail: the engine importing the gym shim is upward, and so is a helper
+    importing the envs."""
+    assert layer(f"{PKG}.wrappers.gymnasium") > layer(f"{PKG}.engines._worker")
+    assert layer(f"{PKG}.envs.maniskill") > layer(f"{PKG}._masked_merge")
+    assert layer(f"{PKG}.engines.cpu_vector") < layer(f"{PKG}.envs.maniskill")
+    assert any(n.startswith(f"{PKG}.engines.") for n in imports(f"{PKG}.envs.maniskill"))
 
 
-@pytest.mark.parametrize("path", _files(*CORE_HELPERS, *HELPERS), ids=lambda p: p.name)
-def test_the_helpers_import_no_engine_and_no_gymnasium_vector(path: Path) -> None:
-    assert path.is_file(), path
-    bad = _offences(path, _reaches_engine_or_vector)
-    assert not bad, f"{path.name} reaches the CPU engine or gymnasium.vector: {bad}"
+def _gymnasium_vector(module: str) -> list[str]:
+    path = MODULES[module]
+    found = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""]
+            found += [n for n in names if n == "gymnasium.vector" or n.startswith("gymnasium.vector.")]
+    return found
+
+
+@pytest.mark.parametrize("module", [m for m in MODULES if m != PKG and layer(m) in (0, 2)])
+def test_the_helpers_and_envs_import_no_gymnasium_vector(module: str) -> None:
+    assert not _gymnasium_vector(module), f"{module} imports gymnasium's vector module"
 
 
 def _names_used(node: ast.AST) -> set[str]:
@@ -132,8 +167,7 @@ def _names_used(node: ast.AST) -> set[str]:
 def test_only_the_factory_picks_the_engine() -> None:
     """The adapter's one file holds both classes, as TorchRL's do: ``ManiSkillEnv`` (the factory)
     picks the CPU engine; ``ManiSkillWrapper`` never names it (it reads the capabilities an
-    engine declares), and nothing else of the file does. Besides the engine, the adapter reaches
-    neither the engine's modules through its other imports nor gymnasium's vector module."""
+    engine declares), and nothing else of the file does."""
     tree = ast.parse(ADAPTER.read_text())
     classes = {n.name: n for n in tree.body if isinstance(n, ast.ClassDef)}
     assert {"ManiSkillWrapper", "ManiSkillEnv"} <= set(classes)
@@ -141,50 +175,21 @@ def test_only_the_factory_picks_the_engine() -> None:
     elsewhere = [n for n in tree.body if not isinstance(n, (ast.ClassDef, ast.ImportFrom, ast.Import))]
     assert "CPUVectorEnv" not in _names_used(classes["ManiSkillWrapper"])
     assert all("CPUVectorEnv" not in _names_used(n) for n in elsewhere)
-    others = {n for n in imports(ADAPTER) if not _is_engine(n)}
-    reached = set()
-    for name in others:
-        target = _file(name)
-        if target is not None and name != PKG:
-            reached |= {f"{by} imports {n}" for n, by in closure(target).items() if _reaches_engine_or_vector(n)}
-    assert not {n for n in others if n.startswith("gymnasium.vector")}
-    assert not reached, reached
 
 
-@pytest.mark.parametrize(
-    "path",
-    sorted((PKG_DIR / "transforms").glob("*.py")) + sorted((PKG_DIR / "wrappers").glob("*.py")),
-    ids=lambda p: f"{p.parent.name}/{p.name}",
-)
-def test_transforms_and_the_gym_shim_import_no_engine(path: Path) -> None:
-    bad = _offences(path, _is_engine)
-    assert not bad, f"{path.parent.name}/{path.name} reaches the CPU engine: {bad}"
+def test_nothing_shadows_a_torchrl_name() -> None:
+    """No public name of the package or its public modules is also a public name of
+    ``torchrl.envs`` (``ParallelEnv`` was, until it became ``ManiSkillParallelEnv``)."""
+    import torchrl.envs
 
+    import maniskill_torchrl
 
-def _engine_files() -> list[Path]:
-    files = sorted((PKG_DIR / "engines").glob("*.py"))
-    # Before the engine had its subpackage it lived in these root modules.
-    return files + [p for p in _files("cpu_vector", "cpu_worker", "cpu_failures") if p.is_file()]
-
-
-@pytest.mark.parametrize("path", _engine_files(), ids=lambda p: p.name)
-def test_the_engine_imports_no_gym_shim_transform_or_env_core(path: Path) -> None:
-    above = [f"{PKG}.{m}" for m in ("wrappers", "transforms", *ENV_CORE)]
-
-    def bad(name: str) -> bool:
-        return any(name == a or name.startswith(a + ".") for a in above)
-
-    offences = _offences(path, bad)
-    assert not offences, f"{path.name} reaches a layer above it: {offences}"
-
-
-def test_the_parser_sees_what_it_checks() -> None:
-    """The factory picks the engine (so an engine import is seen when there is one); the engine
-    exists where the layers say; the core list names real modules."""
-    assert any(_is_engine(n) for n in imports(ADAPTER))
-    assert (PKG_DIR / "engines" / "cpu_vector.py").is_file()
-    assert all(p.is_file() for p in _files(*CORE_HELPERS)), CORE_HELPERS
-    assert "_action_repeat" in HELPERS
+    theirs = set(torchrl.envs.__all__) if hasattr(torchrl.envs, "__all__") else set(dir(torchrl.envs))
+    ours = set(maniskill_torchrl.__all__)
+    for public in ("transforms", "wrappers", "data", "testing", "pipeline", "parallel", "envs", "engines"):
+        ours |= set(importlib.import_module(f"{PKG}.{public}").__all__)
+    assert "ParallelEnv" in theirs
+    assert not ours & theirs, sorted(ours & theirs)
 
 
 CAPABILITIES = (
@@ -210,28 +215,46 @@ def test_the_engine_declares_what_the_core_reads() -> None:
         assert hasattr(CPUVectorEnv, name) and not hasattr(BaseEnv, name), name
 
 
-def test_the_old_engine_path_is_a_deprecated_alias() -> None:
-    import importlib
-    import sys
-
-    import maniskill_torchrl
-    from maniskill_torchrl.engines.cpu_vector import CPUVectorEnv
-
-    sys.modules.pop("maniskill_torchrl.cpu_vector", None)
-    with pytest.warns(DeprecationWarning, match="maniskill_torchrl.engines"):
-        old = importlib.import_module("maniskill_torchrl.cpu_vector")
-    assert old.CPUVectorEnv is CPUVectorEnv is maniskill_torchrl.CPUVectorEnv
+def _fresh_import(name: str):
+    sys.modules.pop(name, None)
+    return importlib.import_module(name)
 
 
-@pytest.mark.parametrize("old", ["env", "maniskill_wrapper", "maniskill_env"])
-def test_the_old_adapter_paths_are_deprecated_aliases(old: str) -> None:
-    import importlib
-    import sys
+@pytest.mark.parametrize(
+    ("old", "new", "where"),
+    [
+        ("env", "envs.maniskill", "ManiSkillEnv"),
+        ("maniskill_wrapper", "envs.maniskill", "ManiSkillWrapper"),
+        ("maniskill_env", "envs.maniskill", "ManiSkillEnv"),
+        ("cpu_vector", "engines.cpu_vector", "CPUVectorEnv"),
+        ("errors", "envs._checks", "checked_device"),
+        ("specs", "envs._specs", "space_to_spec"),
+        ("host_gather", "_host_gather", "HostGather"),
+        ("masked_merge", "_masked_merge", "merge_step"),
+        ("masked_merge", "_repeat", "check_repeat"),
+        ("numpy_sum", "_numpy_sum", "NumpyOrderSums"),
+        ("episode_stats", "_episode_stats", "EpisodeStats"),
+        ("assertions", "_assertions", "assert_tensordict_equal"),
+        ("cli.demo", "cli", "run_demo"),
+    ],
+)
+def test_the_old_module_paths_are_deprecated_aliases(old: str, new: str, where: str) -> None:
+    """Every module that moved imports under its old name for one release, warns where it went,
+    and holds the same objects."""
+    assert not (PKG_DIR / f"{old.replace('.', '/')}.py").exists()
+    with pytest.warns(DeprecationWarning, match=rf"{PKG}\.{old} is deprecated.*{PKG}\.{new}\b"):
+        module = _fresh_import(f"{PKG}.{old}")
+    assert getattr(module, where) is getattr(importlib.import_module(f"{PKG}.{new}"), where)
 
-    import maniskill_torchrl
 
-    sys.modules.pop(f"{PKG}.{old}", None)
-    with pytest.warns(DeprecationWarning, match="maniskill_torchrl.envs.maniskill"):
-        module = importlib.import_module(f"{PKG}.{old}")
-    for name in module.__all__:
-        assert getattr(module, name) is getattr(maniskill_torchrl, name)
+def test_an_unknown_module_is_still_an_import_error() -> None:
+    with pytest.raises(ModuleNotFoundError):
+        importlib.import_module(f"{PKG}.no_such_module")
+
+
+def test_the_old_parallel_env_name_is_a_deprecated_alias() -> None:
+    from maniskill_torchrl import parallel
+
+    with pytest.warns(DeprecationWarning, match="ManiSkillParallelEnv"):
+        old = parallel.ParallelEnv
+    assert old is parallel.ManiSkillParallelEnv

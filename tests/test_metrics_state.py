@@ -17,7 +17,7 @@ from torchrl.envs import Compose, RewardSum, StepCounter, TransformedEnv
 
 from helpers import bits, close_envs, random_actions
 from maniskill_torchrl import CPUUnbatch, EpisodeMetrics, ManiSkillEnv
-from maniskill_torchrl.episode_stats import EpisodeStats
+from maniskill_torchrl._episode_stats import EpisodeStats
 
 
 class Scripted:

@@ -1,4 +1,4 @@
-"""maniskill_torchrl.parallel.ParallelEnv: same data as TorchRL's ParallelEnv, sleeping wait,
+"""maniskill_torchrl.parallel.ManiSkillParallelEnv: same data as TorchRL's ParallelEnv, sleeping wait,
 batch-scheduled workers, errors instead of hangs (a dead worker, fork after a SAPIEN renderer).
 
 The toy envs here are plain torch (no ManiSkill); workers start with "spawn" (the pytest process
@@ -21,7 +21,7 @@ from torchrl.envs import EnvBase, SerialEnv, TransformedEnv
 from torchrl.envs import ParallelEnv as TorchRLParallelEnv
 
 from maniskill_torchrl import _mp
-from maniskill_torchrl.parallel import ParallelEnv, set_batch_policy, usable_cores
+from maniskill_torchrl.parallel import ManiSkillParallelEnv, set_batch_policy, usable_cores
 
 STEPS = 12
 
@@ -92,13 +92,13 @@ def torchrl_rollout() -> TensorDict:
 
 @pytest.fixture(scope="module")
 def toy_envs():
-    """``ParallelEnv(2, SeededToy, wait=...)`` per wait mode, started once for the module (each
+    """``ManiSkillParallelEnv(2, SeededToy, wait=...)`` per wait mode, started once for the module (each
     spawned worker imports torch and TorchRL): every use seeds its rollout (``run``)."""
-    made: dict[str, ParallelEnv] = {}
+    made: dict[str, ManiSkillParallelEnv] = {}
 
-    def get(wait: str) -> ParallelEnv:
+    def get(wait: str) -> ManiSkillParallelEnv:
         if wait not in made:
-            made[wait] = ParallelEnv(2, SeededToy, wait=wait)
+            made[wait] = ManiSkillParallelEnv(2, SeededToy, wait=wait)
         return made[wait]
 
     yield get
@@ -119,7 +119,7 @@ def test_same_rollout_as_torchrl_parallelenv(torchrl_rollout: TensorDict, toy_en
 
 
 def test_worker_crash_raises_quickly() -> None:
-    env = ParallelEnv(2, crashing_toy, wait="sleep")
+    env = ManiSkillParallelEnv(2, crashing_toy, wait="sleep")
     # Start the workers first (spawn + imports: 5-15 s on a busy machine): the limit is on the crash.
     env.reset()
     t0 = time.perf_counter()
@@ -130,19 +130,19 @@ def test_worker_crash_raises_quickly() -> None:
 
 def test_wait_and_options() -> None:
     workers = max(1, usable_cores())
-    assert ParallelEnv(workers, SeededToy).wait == "sleep"  # no core left for the parent
-    env = ParallelEnv(1, SeededToy, wait="spin")
+    assert ManiSkillParallelEnv(workers, SeededToy).wait == "sleep"  # no core left for the parent
+    env = ManiSkillParallelEnv(1, SeededToy, wait="spin")
     assert env.wait == "spin"
     assert env._mp_start_method == "spawn"
     with pytest.raises(ValueError, match="wait"):
-        ParallelEnv(2, SeededToy, wait="busy")
+        ManiSkillParallelEnv(2, SeededToy, wait="busy")
     with pytest.raises(ValueError, match="poll_s"):
-        ParallelEnv(2, SeededToy, poll_s=0)
+        ManiSkillParallelEnv(2, SeededToy, poll_s=0)
 
 
 @pytest.mark.skipif(not hasattr(os, "SCHED_BATCH"), reason="Linux scheduling policy")
 def test_workers_run_as_batch_threads(toy_envs) -> None:
-    assert not ParallelEnv(1, SeededToy, wait="spin")._batch_workers  # only with a sleeping parent
+    assert not ManiSkillParallelEnv(1, SeededToy, wait="spin")._batch_workers  # only with a sleeping parent
     env = toy_envs("sleep")
     env.reset()
     assert len(env._workers) == 2
@@ -155,7 +155,7 @@ def test_workers_run_as_batch_threads(toy_envs) -> None:
 def test_fork_after_renderer_is_refused(monkeypatch) -> None:
     """mp_start_method="fork" in a process holding a SAPIEN renderer: an error at start, not a hang."""
     monkeypatch.setattr(_mp, "vulkan_loaded", lambda: True)
-    env = ParallelEnv(2, SeededToy, mp_start_method="fork")
+    env = ManiSkillParallelEnv(2, SeededToy, mp_start_method="fork")
     with pytest.raises(RuntimeError, match="SAPIEN renderer"):
         env.reset()
 
@@ -189,7 +189,7 @@ def _maniskill_worker():
 
 def test_maniskill_workers_match_serial_env() -> None:
     """Two ManiSkill workers give what the same two envs give in-process (SerialEnv), bit for bit."""
-    env = ParallelEnv(2, _maniskill_worker)
+    env = ManiSkillParallelEnv(2, _maniskill_worker)
     ref_env = SerialEnv(2, _maniskill_worker)
     try:
         got = run_maniskill(env)

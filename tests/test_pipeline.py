@@ -10,10 +10,10 @@ import pickle
 import pytest
 import torch
 
-import maniskill_torchrl.assertions as assertions_module
-import maniskill_torchrl.episode_stats as episode_stats_module
-import maniskill_torchrl.masked_merge as masked_merge_module
-import maniskill_torchrl.numpy_sum as numpy_sum_module
+import maniskill_torchrl._assertions as assertions_module
+import maniskill_torchrl._episode_stats as episode_stats_module
+import maniskill_torchrl._masked_merge as masked_merge_module
+import maniskill_torchrl._numpy_sum as numpy_sum_module
 import maniskill_torchrl.pipeline as pipeline_module
 import maniskill_torchrl.transforms.env_states as env_states_module
 from maniskill_torchrl import ActionRepeat, EpisodeMetrics, IgnoreTerminations, ManiSkillEnv

@@ -8,7 +8,7 @@ import pytest
 import torch
 from torchrl.data import Bounded, Categorical, Composite, MultiCategorical, Unbounded
 
-from maniskill_torchrl.specs import (
+from maniskill_torchrl.envs._specs import (
     done_spec,
     info_spec_from_infos,
     observation_spec_from_space,

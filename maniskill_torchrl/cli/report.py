@@ -100,40 +100,18 @@ def plot_returns(episodes: Sequence[dict[str, Any]], path: Path, title: str) -> 
     plt.close(fig)
 
 
-def record_video(
-    env_id: str,
-    repeat: int,
-    env_kwargs: dict[str, Any],
-    policy_name: str,
-    path: Path,
-    *,
-    steps: int,
-    size: int,
-    seed: int,
-) -> int:
-    """Writes an mp4 of one env run by the demo's policy; returns the number of frames.
+def record_video(env: Any, make_policy: Any, path: Path, *, steps: int, seed: int, repeat: int) -> int:
+    """Writes an mp4 of ``env`` (a single env made with ``render_mode="rgb_array"``) run by
+    ``make_policy(env)``; closes ``env`` and returns the number of frames.
 
-    A separate single env made with ``render_mode="rgb_array"`` and a
-    ``size`` x ``size`` render camera (``human_render_camera_configs``): CPU
-    rendering is the slow part, so one frame per agent step, not per sim step.
+    CPU rendering is the slow part, so one frame per agent step, not per sim step.
     """
     import imageio.v2 as imageio
     from torchrl.envs.utils import step_mdp
 
-    from maniskill_torchrl.cli.scripted_policy import make_policy
-    from maniskill_torchrl.pipeline import make_env
-
-    env = make_env(
-        env_id,
-        repeat=repeat,
-        metrics=False,
-        render_mode="rgb_array",
-        human_render_camera_configs=dict(width=size, height=size),
-        **env_kwargs,
-    )
     base = env.base_env
     env.set_seed(seed + 10_000)  # episodes unlike the collected ones
-    policy = make_policy(policy_name, env, seed)
+    policy = make_policy(env)
     frames = []
     td = env.reset()
     frames.append(base.render()[0].cpu().numpy())

@@ -85,7 +85,7 @@ def save_trajectories(path: str | Path, rollout: TensorDictBase, env: Any) -> li
     """
     import h5py
 
-    from maniskill_torchrl.envs import ManiSkillWrapper
+    from maniskill_torchrl.envs.maniskill import ManiSkillWrapper
 
     wrapper = env
     while not isinstance(wrapper, ManiSkillWrapper):

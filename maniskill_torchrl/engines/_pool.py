@@ -2,20 +2,23 @@
 them, wake them for a step, send them the rarer calls, collect their answers, and, when one
 fails, say which and stop them all (the others would wait forever for a sub-env that is gone).
 
-One duplex pipe per worker (``_worker.serve`` is the other end). A step is one byte each way;
-the data lies in the shared block (``_shared.py``). Like ``cpu_vector.py``, this module imports
-neither TorchRL nor the rest of the library.
+One duplex pipe per worker; the worker's loop (``_worker.serve``, given as ``target``) is the
+other end. A step is one byte each way (:data:`STEP`, :data:`DONE`); the data lies in the shared
+block (``_shared.py``). Like ``cpu_vector.py``, this module imports neither TorchRL nor the rest
+of the library.
 """
 
 from __future__ import annotations
 
 import multiprocessing
 import pickle
+from collections.abc import Callable
 from typing import Any
 
-from maniskill_torchrl.engines._worker import DONE, STEP, MakeWorker, serve
+__all__ = ["DONE", "STEP", "WorkerFailure", "WorkerPool"]
 
-__all__ = ["WorkerFailure", "WorkerPool"]
+# A step crosses a worker's pipe as one byte each way: the parent's wake, the worker's done.
+STEP, DONE = b"s", b"k"
 
 
 class WorkerFailure(Exception):
@@ -28,17 +31,18 @@ class WorkerFailure(Exception):
 
 
 class WorkerPool:
-    """Worker processes for the sub-envs ``makers[i].index``, started at once (each makes its env
-    while the parent goes on); :meth:`ready` waits for them."""
+    """Worker processes for the sub-envs ``makers[i].index``, started at once (each runs
+    ``target(pipe, makers[i])``, which makes its env while the parent goes on); :meth:`ready`
+    waits for them."""
 
-    def __init__(self, makers: list[MakeWorker], context: str) -> None:
+    def __init__(self, target: Callable[[Any, Any], None], makers: list[Any], context: str) -> None:
         ctx = multiprocessing.get_context(context)
         self.indices = [make.index for make in makers]
         self.processes: list = []
         self.pipes: list = []
         for make in makers:
             mine, theirs = ctx.Pipe(duplex=True)
-            process = ctx.Process(target=serve, args=(theirs, make), name=f"CPUVectorEnv-{make.index}", daemon=True)
+            process = ctx.Process(target=target, args=(theirs, make), name=f"CPUVectorEnv-{make.index}", daemon=True)
             self.processes.append(process)
             self.pipes.append(mine)
             process.start()

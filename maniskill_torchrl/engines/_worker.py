@@ -10,7 +10,7 @@ writes its row the same way).
 
 Like ``cpu_vector.py``, this module imports neither TorchRL nor the rest of the library beyond
 ``_maniskill`` when it loads: the workers import it, and start faster without them. A worker
-told to repeat actions imports ``_action_repeat`` (the gym shim's repeat step) then.
+told to repeat actions imports ``_repeat`` (the gym shim's repeat step) then.
 """
 
 from __future__ import annotations
@@ -35,6 +35,7 @@ from maniskill_torchrl._maniskill import (
     render_frame_shape,
     wrapper_attr,
 )
+from maniskill_torchrl.engines._pool import DONE, STEP
 
 __all__ = [
     "OBS",
@@ -45,8 +46,6 @@ __all__ = [
     "StepInObservation",
     "MakeWorker",
     "serve",
-    "STEP",
-    "DONE",
     "SUB_ENV_STATES",
     "join_states",
     "to_numpy",
@@ -55,8 +54,6 @@ __all__ = [
 
 # The entries of a worker's observation: its whole step.
 OBS, INFO, REWARD, TERMINATED, TRUNCATED = "obs", "info", "reward", "terminated", "truncated"
-# A step crosses a worker's pipe as one byte each way: the parent's wake, the worker's done.
-STEP, DONE = b"s", b"k"
 # A reset option of the CPUVectorEnv's own: (sub-env indices being reset, their saved states, one row each).
 SUB_ENV_STATES = "_sub_env_states"
 
@@ -68,7 +65,7 @@ def _numpy_dtype(dtype: torch.dtype) -> np.dtype:
 def _info_space(infos: Mapping[str, Any]) -> gym.spaces.Dict:
     """Spaces for the per-env tensor infos of a one-env ManiSkill info dict (``[1, ...]`` tensors).
 
-    The same entries as :func:`maniskill_torchrl.specs.info_spec_from_infos` keeps:
+    The same entries as :func:`maniskill_torchrl.envs._specs.info_spec_from_infos` keeps:
     python values such as ``reconfigure`` are per-call metadata and are left out.
     """
     spaces: dict[str, gym.Space] = {}
@@ -122,7 +119,7 @@ class StepInObservation(gym.Wrapper):
 
     :meth:`set_repeat` ``(k)`` makes each ``step`` the gym shim's
     :class:`~maniskill_torchrl.wrappers.ActionRepeatWrapper` step (ManiSkill's, bit for bit;
-    ``maniskill_torchrl._action_repeat``, which both use, so no gym shim is imported here) on
+    ``maniskill_torchrl._repeat``, which both use, so no gym shim is imported here) on
     the env with its reward in float32: up to ``k`` steps in this worker, none after its
     episode's end, rewards summed in float32 as :class:`~maniskill_torchrl.transforms.ActionRepeat`
     sums them.
@@ -162,7 +159,7 @@ class StepInObservation(gym.Wrapper):
             self._stepper = self.env
         else:
             # The masked merge (tensordict, no TorchRL) is imported only by workers that repeat.
-            from maniskill_torchrl._action_repeat import repeat_step
+            from maniskill_torchrl._repeat import repeat_step
 
             # Each inner step's reward in float32 before the sum, as ActionRepeat sums the
             # parent env's float32 rewards: one rule for bool and float64 tasks on both paths.

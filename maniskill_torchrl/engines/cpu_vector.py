@@ -49,6 +49,7 @@ from maniskill_torchrl.engines._worker import (
     TRUNCATED,
     MakeWorker,
     join_states,
+    serve,
     to_numpy,
     zeros_tree,
 )
@@ -151,7 +152,7 @@ class CPUVectorEnv:
         makers = [MakeWorker(env_id, maniskill_kwargs, index=i, trace=spec) for i in range(num_envs)]
         try:
             if num_envs > self._first:  # the workers make their envs while this process makes its own
-                self._pool = WorkerPool(makers[self._first :], context)
+                self._pool = WorkerPool(serve, makers[self._first :], context)
             if in_process:
                 self._local = makers[0].make()
                 if spec is not None:  # sub-env 0 stamps its columns as a worker does, with its own count
@@ -333,7 +334,7 @@ class CPUVectorEnv:
             TypeError: ``repeat`` is not an int.
             ValueError: ``repeat < 1``.
         """
-        from maniskill_torchrl.masked_merge import check_repeat  # tensordict: kept out of module import
+        from maniskill_torchrl._repeat import check_repeat  # tensordict: kept out of module import
 
         repeat = check_repeat(repeat)
         if repeat == self._repeat:

@@ -12,9 +12,9 @@ reset and step, actions, seeding, saved states (:meth:`~ManiSkillWrapper.get_sta
 the CPU engine (:class:`~maniskill_torchrl.CPUVectorEnv`) for several CPU-sim envs; the wrapper only
 reads the capabilities an engine declares.
 
-Pure helpers live beside it: spec conversion (``maniskill_torchrl.specs``), argument checks and
-errors (``maniskill_torchrl.errors``), ManiSkill / SAPIEN helpers (``maniskill_torchrl._maniskill``),
-the one-transfer host gather (``maniskill_torchrl.host_gather``) and the reset seeds
+Pure helpers live beside it: spec conversion (``maniskill_torchrl.envs._specs``), argument checks and
+errors (``maniskill_torchrl.envs._checks``), ManiSkill / SAPIEN helpers (``maniskill_torchrl._maniskill``),
+the one-transfer host gather (``maniskill_torchrl._host_gather``) and the reset seeds
 (``envs/_seeding.py``).
 """
 
@@ -31,6 +31,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data.utils import DEVICE_TYPING
 
+from maniskill_torchrl._host_gather import HostGather
 from maniskill_torchrl._maniskill import (
     canonical_device,
     check_assets,
@@ -46,8 +47,7 @@ from maniskill_torchrl._maniskill import (
 )
 from maniskill_torchrl._private import EnvWrapper, classproperty, new_tensordict
 from maniskill_torchrl.engines.cpu_vector import CPUVectorEnv
-from maniskill_torchrl.envs._seeding import ResetSeeds
-from maniskill_torchrl.errors import (
+from maniskill_torchrl.envs._checks import (
     ClosedEnv,
     action_error,
     check_frame_skip,
@@ -56,8 +56,8 @@ from maniskill_torchrl.errors import (
     checked_batch_size,
     checked_device,
 )
-from maniskill_torchrl.host_gather import HostGather
-from maniskill_torchrl.specs import env_specs
+from maniskill_torchrl.envs._seeding import ResetSeeds
+from maniskill_torchrl.envs._specs import env_specs
 
 if TYPE_CHECKING:
     from mani_skill.envs.sapien_env import BaseEnv

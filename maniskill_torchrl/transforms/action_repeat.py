@@ -6,8 +6,9 @@ from tensordict import TensorDictBase
 from torchrl.envs import Compose, EnvBase, Transform, TransformedEnv
 from torchrl.envs.batched_envs import BatchedEnvBase
 
+from maniskill_torchrl._masked_merge import any_done, merge_step
 from maniskill_torchrl._private import complete_done, env_step
-from maniskill_torchrl.masked_merge import any_done, check_repeat, merge_step
+from maniskill_torchrl._repeat import check_repeat
 
 __all__ = ["ActionRepeat"]
 

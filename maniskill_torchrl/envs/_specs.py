@@ -59,7 +59,7 @@ def space_to_spec(space: gym.Space, batch_size: torch.Size, device: torch.device
 
     Examples:
         >>> import gymnasium as gym, torch
-        >>> from maniskill_torchrl.specs import space_to_spec
+        >>> from maniskill_torchrl.envs._specs import space_to_spec
         >>> space_to_spec(gym.spaces.Box(-1, 1, (8,)), torch.Size([4]), torch.device("cpu")).shape
         torch.Size([4, 8])
     """

@@ -15,9 +15,9 @@ from typing import Any
 import torch
 from tensordict import TensorDict, TensorDictBase
 
+from maniskill_torchrl._host_gather import HostGather
+from maniskill_torchrl._numpy_sum import NumpyOrderSums
 from maniskill_torchrl._private import new_tensordict
-from maniskill_torchrl.host_gather import HostGather
-from maniskill_torchrl.numpy_sum import NumpyOrderSums
 
 __all__ = ["EPISODE_FIELDS", "SUMMATIONS", "EpisodeField", "EpisodeStats", "episode_fields"]
 
@@ -80,7 +80,7 @@ class EpisodeStats:
 
     - ``"numpy"``: bit for bit ``numpy.sum`` of the episode's rewards, as ManiSkill's
       ``CPUGymWrapper(record_metrics=True)`` reports it. It keeps each env's rewards by position
-      (:class:`~maniskill_torchrl.numpy_sum.NumpyOrderSums`) and costs one numpy reduction per env
+      (:class:`~maniskill_torchrl._numpy_sum.NumpyOrderSums`) and costs one numpy reduction per env
       per step on the host. Default on the CPU. An env whose ``previous`` state is not the
       continuation of the rewards kept (a step from an earlier episode passed back) goes on
       from ``previous["return"]`` with a running sum until its next reset: bit-equality with
@@ -100,7 +100,7 @@ class EpisodeStats:
 
     Examples:
         >>> import torch
-        >>> from maniskill_torchrl.episode_stats import EpisodeStats
+        >>> from maniskill_torchrl._episode_stats import EpisodeStats
         >>> stats = EpisodeStats([2], torch.device("cpu"), has_success=True, has_fail=False)
         >>> ep = stats.update(None, torch.tensor([1.0, 2.0]), success=torch.tensor([False, True]))
         >>> ep = stats.update(ep, torch.tensor([1.0, 2.0]), success=torch.tensor([False, False]))

@@ -1,21 +1,52 @@
-"""ManiSkill's masked action repeat on its batched torch outputs, written once.
+"""Action repeat's rules, written once, on torch alone.
 
-One step of ManiSkill's ``ActionRepeatWrapper``, merged by
-:func:`maniskill_torchrl.masked_merge.keep_where` (the rule of the TorchRL ``ActionRepeat``
-transform) directly on ManiSkill's dicts. The gym shim's
-:class:`~maniskill_torchrl.wrappers.ActionRepeatWrapper` steps with it, and so does each CPU
-engine worker told to repeat actions, which thus needs neither the gym shim nor TorchRL.
+- :func:`check_repeat`: the one check of a repeat count (the transform, the gym shim, the engine).
+- :func:`keep_where`: an env that has ended keeps its last real step; the rule of the TorchRL
+  ``ActionRepeat`` transform (through :mod:`~maniskill_torchrl._masked_merge`) and of
+  :func:`repeat_step`.
+- :func:`repeat_step`: one step of ManiSkill's ``ActionRepeatWrapper`` directly on ManiSkill's
+  dicts. The gym shim's :class:`~maniskill_torchrl.wrappers.ActionRepeatWrapper` steps with it,
+  and so does each CPU engine worker told to repeat actions, which thus needs neither the gym
+  shim nor TorchRL nor tensordict.
 """
 
 from __future__ import annotations
 
+import numbers
 from typing import Any
 
 import torch
 
-from maniskill_torchrl.masked_merge import keep_where
+__all__ = ["check_repeat", "expand_mask", "keep_where", "repeat_step"]
 
-__all__ = ["repeat_step"]
+
+def check_repeat(repeat: object) -> int:
+    """``repeat`` as an int >= 1.
+
+    Raises:
+        TypeError: ``repeat`` is not an int (``bool`` included; numpy ints are fine).
+        ValueError: ``repeat < 1``.
+    """
+    if isinstance(repeat, bool) or not isinstance(repeat, numbers.Integral):
+        raise TypeError(
+            "repeat must be an int >= 1 (inner steps per step; 1 means no repeat), got "
+            f"{type(repeat).__name__} {repeat!r}; pass e.g. repeat=2."
+        )
+    if repeat < 1:
+        raise ValueError(
+            f"repeat must be >= 1, got {repeat}: an int >= 1 counts the inner steps per step (1 means no repeat)."
+        )
+    return int(repeat)
+
+
+def expand_mask(mask: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    """``mask`` (batch-shaped) with trailing dims of 1 to broadcast against ``like``."""
+    return mask.reshape(mask.shape + (1,) * (like.ndim - mask.ndim))
+
+
+def keep_where(mask: torch.Tensor, new: torch.Tensor, old: torch.Tensor) -> torch.Tensor:
+    """``new`` for the envs in ``mask`` (batch-shaped, leading dims), ``old`` for the others."""
+    return torch.where(expand_mask(mask, new), new, old)
 
 
 def _merge(acc: Any, new: Any, running: torch.Tensor | None, batch: int) -> Any:

@@ -1,50 +1,22 @@
-"""The masked merge behind action repeat, shared by the ``ActionRepeat`` transform and the gym shim.
+"""The masked merge of inner steps on TensorDicts, behind the ``ActionRepeat`` transform.
 
 An env that has ended keeps its last real step; reward is summed and done flags
-OR'ed over the inner steps it really took. :func:`check_repeat` is the one check
-of the repeat count both take.
+OR'ed over the inner steps it really took. The rule per tensor is
+:func:`~maniskill_torchrl._repeat.keep_where`, which the gym shim and the CPU engine's
+workers use on ManiSkill's dicts.
 """
 
 from __future__ import annotations
 
-import numbers
 from collections.abc import Sequence
 
 import torch
 from tensordict import NestedKey, TensorDict, TensorDictBase
 
 from maniskill_torchrl._private import entries, fast_apply, has_names, new_tensordict
+from maniskill_torchrl._repeat import keep_where
 
-__all__ = ["any_done", "check_repeat", "keep_where", "merge_step"]
-
-
-def check_repeat(repeat: object) -> int:
-    """``repeat`` as an int >= 1.
-
-    Raises:
-        TypeError: ``repeat`` is not an int (``bool`` included; numpy ints are fine).
-        ValueError: ``repeat < 1``.
-    """
-    if isinstance(repeat, bool) or not isinstance(repeat, numbers.Integral):
-        raise TypeError(
-            "repeat must be an int >= 1 (inner steps per step; 1 means no repeat), got "
-            f"{type(repeat).__name__} {repeat!r}; pass e.g. repeat=2."
-        )
-    if repeat < 1:
-        raise ValueError(
-            f"repeat must be >= 1, got {repeat}: an int >= 1 counts the inner steps per step (1 means no repeat)."
-        )
-    return int(repeat)
-
-
-def expand_mask(mask: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
-    """``mask`` (batch-shaped) with trailing dims of 1 to broadcast against ``like``."""
-    return mask.reshape(mask.shape + (1,) * (like.ndim - mask.ndim))
-
-
-def keep_where(mask: torch.Tensor, new: torch.Tensor, old: torch.Tensor) -> torch.Tensor:
-    """``new`` for the envs in ``mask`` (batch-shaped, leading dims), ``old`` for the others."""
-    return torch.where(expand_mask(mask, new), new, old)
+__all__ = ["any_done", "merge_step"]
 
 
 def any_done(td: TensorDictBase, done_keys: Sequence[NestedKey]) -> torch.Tensor:
@@ -78,7 +50,7 @@ def merge_step(
     Examples:
         >>> import torch
         >>> from tensordict import TensorDict
-        >>> from maniskill_torchrl.masked_merge import merge_step
+        >>> from maniskill_torchrl._masked_merge import merge_step
         >>> acc = TensorDict(reward=torch.ones(2, 1), done=torch.tensor([[True], [False]]),
         ...                  obs=torch.zeros(2, 3), batch_size=[2])
         >>> new = TensorDict(reward=torch.ones(2, 1), done=torch.tensor([[False], [True]]),

@@ -39,7 +39,7 @@ class NumpyOrderSums:
 
     One numpy reduction per env per step, on the host: the CPU sim's summation (a handful of
     envs). The GPU sim's anchor, ``ManiSkillVectorEnv(record_metrics=True)``, keeps a running
-    float32 sum instead (:class:`~maniskill_torchrl.episode_stats.EpisodeStats`,
+    float32 sum instead (:class:`~maniskill_torchrl._episode_stats.EpisodeStats`,
     ``summation="running"``).
 
     Args:
