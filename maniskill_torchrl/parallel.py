@@ -1,9 +1,9 @@
 """``ParallelEnv`` of single CPU ManiSkill envs, with the settings that keep the cores for the workers.
 
-:class:`ManiSkillParallelEnv` is TorchRL's :class:`torchrl.envs.ParallelEnv` with four changes, each
-found by profiling ``Collector(ParallelEnv(N, ManiSkillEnv + CPUUnbatch))`` on 2 cores
-(the docs' CPU performance guide links the figures). The rest of the gap to gymnasium's ``AsyncVectorEnv`` of ManiSkill's
-``CPUGymWrapper`` is TorchRL's per-step work in the collector, the ``ParallelEnv`` and the
+:class:`ManiSkillParallelEnv` is TorchRL's :class:`torchrl.envs.ParallelEnv` with four changes,
+each found by profiling ``Collector(ParallelEnv(N, ManiSkillEnv + CPUUnbatch))`` on 2 cores
+(the docs' CPU performance guide links the figures). The rest of the gap to gymnasium's
+``AsyncVectorEnv`` of ManiSkill's ``CPUGymWrapper`` is TorchRL's per-step work in the collector, the ``ParallelEnv`` and the
 worker, on the critical path of every synchronous step, which no setting removes. Make the
 workers' envs ``ManiSkillEnv(id, batch_size=[])`` (unbatched by the env itself: no
 transformed env's step in each worker when no other transform is needed). For speed, prefer
@@ -53,8 +53,8 @@ Examples:
 from __future__ import annotations
 
 import os
-import warnings
 import time
+import warnings
 from collections import deque
 from collections.abc import Callable, Sequence
 from typing import Any, Literal
