@@ -1,14 +1,14 @@
 """``ParallelEnv`` of single CPU ManiSkill envs, with the settings that keep the cores for the workers.
 
 :class:`ManiSkillParallelEnv` is TorchRL's :class:`torchrl.envs.ParallelEnv` with four changes,
-each found by profiling ``Collector(ParallelEnv(N, ManiSkillEnv + CPUUnbatch))`` on 2 cores
-(the docs' CPU performance guide links the figures). The rest of the gap to gymnasium's
-``AsyncVectorEnv`` of ManiSkill's ``CPUGymWrapper`` is TorchRL's per-step work in the collector, the ``ParallelEnv`` and the
-worker, on the critical path of every synchronous step, which no setting removes. Make the
-workers' envs ``ManiSkillEnv(id, batch_size=[])`` (unbatched by the env itself: no
-transformed env's step in each worker when no other transform is needed). For speed, prefer
-the batched env ``ManiSkillEnv(id, num_envs=N)`` or
-``Collector(make_env, backend="process", num_collectors=N)``.
+each found by profiling ``Collector(ParallelEnv(N, ManiSkillEnv + CPUUnbatch))`` on 2 cores (the
+docs' CPU performance guide links the figures). The rest of the gap to gymnasium's
+``AsyncVectorEnv`` of ManiSkill's ``CPUGymWrapper`` is TorchRL's per-step work in the collector,
+the ``ParallelEnv`` and the worker, on the critical path of every synchronous step, which no
+setting removes. Make the workers' envs ``ManiSkillEnv(id, batch_size=[])`` (unbatched by the
+env itself: no transformed env's step in each worker when no other transform is needed). For
+speed, prefer the batched env ``ManiSkillEnv(id, num_envs=N)`` or ``Collector(make_env,
+backend="process", num_collectors=N)``.
 
 1. **Waiting for the workers sleeps instead of spinning.** TorchRL 0.14 waits for a step's
    results by spin-polling one shared-memory flag per worker
