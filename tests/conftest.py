@@ -1,10 +1,11 @@
-"""Shared fixtures (the shared helper functions live in helpers.py): ManiSkill envs on the CPU
+"""Shared fixtures and the area markers (the shared helpers and doubles live in ``support/``): ManiSkill envs on the CPU
 sim are costly to build (about 0.4 s), so module-scoped fixtures share them where a test allows;
 every comparison seeds every reset."""
 
 from __future__ import annotations
 
 import warnings
+from pathlib import Path
 
 import mani_skill.envs  # noqa: F401  (registers the tasks)
 import pytest
@@ -12,6 +13,17 @@ import torch
 
 warnings.filterwarnings("ignore", message=".*precision lowered by casting.*")
 warnings.filterwarnings("ignore", module="mani_skill")
+
+
+_TESTS = Path(__file__).resolve().parent
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Each test gets the marker of its area, the folder it is in (registered in pyproject.toml)."""
+    for item in items:
+        parts = Path(item.fspath).resolve().relative_to(_TESTS).parts
+        if len(parts) > 1 and parts[0] != "support":
+            item.add_marker(parts[0])
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:

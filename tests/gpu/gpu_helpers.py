@@ -38,7 +38,7 @@ import numpy as np
 import pytest
 import torch
 
-from helpers import assert_same, clone_tree
+from support.helpers import assert_same, clone_tree
 
 CUDA = torch.cuda.is_available()
 # A check of the test code itself on the CPU sim (nothing about the GPU path): N > 1 envs run as

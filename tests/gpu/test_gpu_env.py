@@ -43,7 +43,7 @@ from gpu_helpers import (
     shared_env,
     swapped,
 )
-from helpers import assert_same, clone_tree, tensor_infos
+from support.helpers import assert_same, clone_tree, tensor_infos
 
 pytestmark = requires_gpu
 

@@ -30,9 +30,9 @@ from gpu_helpers import (
     sync_counts,
     sync_sites,
 )
-from helpers import assert_same, clone_tree
 from maniskill_torchrl import ActionRepeat, EpisodeMetrics, IgnoreTerminations, ManiSkillEnv, ManiSkillWrapper
 from maniskill_torchrl.testing import assert_on_device
+from support.helpers import assert_same, clone_tree
 
 pytestmark = requires_gpu
 

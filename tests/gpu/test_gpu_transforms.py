@@ -55,8 +55,8 @@ from gpu_helpers import (
     shared_env,
     swapped,
 )
-from helpers import assert_same, clone_tree, tensor_infos
 from maniskill_torchrl import ActionRepeat, EpisodeMetrics, IgnoreTerminations
+from support.helpers import assert_same, clone_tree, tensor_infos
 
 pytestmark = requires_gpu
 

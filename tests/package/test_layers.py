@@ -1,0 +1,260 @@
+"""The package's layers, read statically from its imports (``ast``, nothing imported).
+
+Each module sits in one layer of :data:`LAYERS` (bottom first, as in ``docs/contributing.md``,
+"Module layout"), and imports only from its own layer or those below: the helpers at the bottom,
+the CPU engine beside the envs (only the factory, ``ManiSkillEnv``, names it), the transforms
+and the gym shim above the envs and below data, testing, the recipe and the CLI. No import
+chain inside the package is longer than :data:`MAX_CHAIN` modules.
+
+Every import counts, at any depth: module level, inside functions (lazy imports) and
+``importlib.import_module("...")`` calls; imports under ``if TYPE_CHECKING:`` never run and
+are left out of the chains. ``from pkg import name`` is an import of ``pkg.name`` when that is a
+module, else of ``pkg``. The root package (``maniskill_torchrl/__init__.py``, whose public
+names load on first use) is the facade above everything, and no layer.
+"""
+
+from __future__ import annotations
+
+import ast
+import importlib
+import sys
+from functools import cache
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+PKG = "maniskill_torchrl"
+PKG_DIR = ROOT / PKG
+MAX_CHAIN = 7
+
+# Bottom first. A module's layer is the first entry whose name is the module or a package above it.
+LAYERS: list[tuple[str, tuple[str, ...]]] = [
+    (
+        "helpers",
+        (
+            "_private",
+            "_mp",
+            "_maniskill",
+            "_moved",
+            "_repeat",
+            "_masked_merge",
+            "_host_gather",
+            "_numpy_sum",
+            "_episode_stats",
+            "_assertions",
+        ),
+    ),
+    ("engines", ("engines",)),
+    ("envs", ("envs", "parallel")),
+    ("transforms and the gym shim", ("transforms", "wrappers")),
+    ("data and testing", ("data", "testing")),
+    ("recipe", ("pipeline",)),
+    ("CLI", ("cli", "__main__")),
+]
+ADAPTER = PKG_DIR / "envs" / "maniskill.py"
+
+
+def _module(path: Path) -> str:
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+MODULES = {_module(p): p for p in sorted(PKG_DIR.rglob("*.py"))}
+
+
+def layer(module: str) -> int:
+    """The rank of ``module``'s layer in :data:`LAYERS`."""
+    rel = module.removeprefix(PKG + ".")
+    for rank, (_, names) in enumerate(LAYERS):
+        if any(rel == n or rel.startswith(n + ".") for n in names):
+            return rank
+    raise AssertionError(f"{module} is in no layer of tests/test_layers.py's LAYERS: add it to one")
+
+
+def _type_checking(node: ast.AST) -> bool:
+    test = getattr(node, "test", None)
+    return isinstance(node, ast.If) and getattr(test, "id", getattr(test, "attr", None)) == "TYPE_CHECKING"
+
+
+def _nodes(tree: ast.AST):
+    """Every node of ``tree`` but those under ``if TYPE_CHECKING:``."""
+    todo = [tree]
+    while todo:
+        node = todo.pop()
+        yield node
+        if _type_checking(node):
+            todo.extend(node.orelse)
+        else:
+            todo.extend(ast.iter_child_nodes(node))
+
+
+@cache
+def imports(module: str) -> frozenset[str]:
+    """The package modules ``module`` imports (its own file only), resolved to module names."""
+    path = MODULES[module]
+    package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+    names: set[str] = set()
+    for node in _nodes(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join([*anchor, base] if base else anchor)
+            subs = {f"{base}.{a.name}" for a in node.names} & MODULES.keys()
+            names.update(subs or {base})
+        elif isinstance(node, ast.Call):  # importlib.import_module("...") / __import__("...")
+            func = node.func
+            called = func.attr if isinstance(func, ast.Attribute) else getattr(func, "id", None)
+            if called in ("import_module", "__import__") and node.args and isinstance(node.args[0], ast.Constant):
+                names.add(str(node.args[0].value))
+    return frozenset(n for n in names if n in MODULES and n not in (PKG, module))
+
+
+def longest_chain(module: str, seen: tuple[str, ...] = ()) -> list[str]:
+    """The longest chain of imports from ``module`` that visits no module twice."""
+    best = [module]
+    for name in sorted(imports(module)):
+        if name not in seen:
+            chain = [module, *longest_chain(name, (*seen, module))]
+            best = chain if len(chain) > len(best) else best
+    return best
+
+
+@pytest.mark.parametrize("module", [m for m in MODULES if m != PKG])
+def test_no_import_runs_upward(module: str) -> None:
+    up = sorted(n for n in imports(module) if layer(n) > layer(module))
+    assert not up, f"{module} ({LAYERS[layer(module)][0]}) imports from a layer above it: {up}"
+
+
+def test_import_chains_are_short() -> None:
+    chains = {m: longest_chain(m) for m in MODULES}
+    long = {m: " -> ".join(c) for m, c in chains.items() if len(c) > MAX_CHAIN}
+    assert not long, f"import chains longer than {MAX_CHAIN} modules: {long}"
+    assert max(len(c) for c in chains.values()) >= 5  # the parser sees chains at all
+
+
+def test_the_layer_table_catches_an_upward_import() -> None:
+    """The checks can fail: the engine importing the gym shim is upward, and so is a helper
+    importing the envs."""
+    assert layer(f"{PKG}.wrappers.gymnasium") > layer(f"{PKG}.engines._worker")
+    assert layer(f"{PKG}.envs.maniskill") > layer(f"{PKG}._masked_merge")
+    assert layer(f"{PKG}.engines.cpu_vector") < layer(f"{PKG}.envs.maniskill")
+    assert any(n.startswith(f"{PKG}.engines.") for n in imports(f"{PKG}.envs.maniskill"))
+
+
+def _gymnasium_vector(module: str) -> list[str]:
+    path = MODULES[module]
+    found = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""]
+            found += [n for n in names if n == "gymnasium.vector" or n.startswith("gymnasium.vector.")]
+    return found
+
+
+@pytest.mark.parametrize("module", [m for m in MODULES if m != PKG and layer(m) in (0, 2)])
+def test_the_helpers_and_envs_import_no_gymnasium_vector(module: str) -> None:
+    assert not _gymnasium_vector(module), f"{module} imports gymnasium's vector module"
+
+
+def _names_used(node: ast.AST) -> set[str]:
+    return {n.id for n in ast.walk(node) if isinstance(n, ast.Name)}
+
+
+def test_only_the_factory_picks_the_engine() -> None:
+    """The adapter's one file holds both classes, as TorchRL's do: ``ManiSkillEnv`` (the factory)
+    picks the CPU engine; ``ManiSkillWrapper`` never names it (it reads the capabilities an
+    engine declares), and nothing else of the file does."""
+    tree = ast.parse(ADAPTER.read_text())
+    classes = {n.name: n for n in tree.body if isinstance(n, ast.ClassDef)}
+    assert {"ManiSkillWrapper", "ManiSkillEnv"} <= set(classes)
+    assert "CPUVectorEnv" in _names_used(classes["ManiSkillEnv"])
+    elsewhere = [n for n in tree.body if not isinstance(n, (ast.ClassDef, ast.ImportFrom, ast.Import))]
+    assert "CPUVectorEnv" not in _names_used(classes["ManiSkillWrapper"])
+    assert all("CPUVectorEnv" not in _names_used(n) for n in elsewhere)
+
+
+def test_nothing_shadows_a_torchrl_name() -> None:
+    """No public name of the package or its public modules is also a public name of
+    ``torchrl.envs`` (``ParallelEnv`` was, until it became ``ManiSkillParallelEnv``)."""
+    import torchrl.envs
+
+    import maniskill_torchrl
+
+    theirs = set(torchrl.envs.__all__) if hasattr(torchrl.envs, "__all__") else set(dir(torchrl.envs))
+    ours = set(maniskill_torchrl.__all__)
+    for public in ("transforms", "wrappers", "data", "testing", "pipeline", "parallel", "envs", "engines"):
+        ours |= set(importlib.import_module(f"{PKG}.{public}").__all__)
+    assert "ParallelEnv" in theirs
+    assert not ours & theirs, sorted(ours & theirs)
+
+
+CAPABILITIES = (
+    "returns_copies",
+    "runs_inference_mode",
+    "seeds_partial_resets",
+    "reconfigures_partially",
+    "repeats_actions",
+)
+
+
+def test_the_engine_declares_what_the_core_reads() -> None:
+    """The capabilities the core reads with ``getattr(base, name, False)``: True on the CPU engine,
+    absent from ManiSkill's ``BaseEnv`` (so a plain ManiSkill env reads False)."""
+    from mani_skill.envs.sapien_env import BaseEnv
+
+    from maniskill_torchrl.engines import CPUVectorEnv
+
+    for name in CAPABILITIES:
+        assert getattr(CPUVectorEnv, name) is True, name
+        assert not hasattr(BaseEnv, name), name
+    for name in ("render_frame_shape", "set_repeat", "repeat"):
+        assert hasattr(CPUVectorEnv, name) and not hasattr(BaseEnv, name), name
+
+
+def _fresh_import(name: str):
+    sys.modules.pop(name, None)
+    return importlib.import_module(name)
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "where"),
+    [
+        ("env", "envs.maniskill", "ManiSkillEnv"),
+        ("maniskill_wrapper", "envs.maniskill", "ManiSkillWrapper"),
+        ("maniskill_env", "envs.maniskill", "ManiSkillEnv"),
+        ("cpu_vector", "engines.cpu_vector", "CPUVectorEnv"),
+        ("errors", "envs._checks", "checked_device"),
+        ("specs", "envs._specs", "space_to_spec"),
+        ("host_gather", "_host_gather", "HostGather"),
+        ("masked_merge", "_masked_merge", "merge_step"),
+        ("masked_merge", "_repeat", "check_repeat"),
+        ("numpy_sum", "_numpy_sum", "NumpyOrderSums"),
+        ("episode_stats", "_episode_stats", "EpisodeStats"),
+        ("assertions", "_assertions", "assert_tensordict_equal"),
+        ("cli.demo", "cli", "run_demo"),
+    ],
+)
+def test_the_old_module_paths_are_deprecated_aliases(old: str, new: str, where: str) -> None:
+    """Every module that moved imports under its old name for one release, warns where it went,
+    and holds the same objects."""
+    assert not (PKG_DIR / f"{old.replace('.', '/')}.py").exists()
+    with pytest.warns(DeprecationWarning, match=rf"{PKG}\.{old} is deprecated.*{PKG}\.{new}\b"):
+        module = _fresh_import(f"{PKG}.{old}")
+    assert getattr(module, where) is getattr(importlib.import_module(f"{PKG}.{new}"), where)
+
+
+def test_an_unknown_module_is_still_an_import_error() -> None:
+    with pytest.raises(ModuleNotFoundError):
+        importlib.import_module(f"{PKG}.no_such_module")
+
+
+def test_the_old_parallel_env_name_is_a_deprecated_alias() -> None:
+    from maniskill_torchrl import parallel
+
+    with pytest.warns(DeprecationWarning, match="ManiSkillParallelEnv"):
+        old = parallel.ParallelEnv
+    assert old is parallel.ManiSkillParallelEnv

@@ -1,0 +1,81 @@
+"""IgnoreTerminations: terminated forced False, done = truncated, at every level of done keys."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict
+from torchrl.envs import Compose, TransformedEnv
+from torchrl.envs.utils import check_env_specs
+
+from maniskill_torchrl import CPUUnbatch, IgnoreTerminations, ManiSkillEnv
+from maniskill_torchrl.transforms import IgnoreTerminations as IgnoreTerminationsFromTransforms
+from support.toy_env import ToyEnv
+
+
+def test_cartpole_runs_past_fail_to_time_limit():
+    base = TransformedEnv(ManiSkillEnv("MS-CartpoleBalance-v1", obs_mode="state", max_episode_steps=40), CPUUnbatch())
+    env = TransformedEnv(base.base_env, Compose(CPUUnbatch(), IgnoreTerminations()))
+    try:
+        assert env.output_spec == base.output_spec  # specs unchanged
+        check_env_specs(env, seed=0)
+        # Without the transform the episode terminates early on fail...
+        base.set_seed(1)
+        torch.manual_seed(0)  # the random actions
+        short = base.rollout(100)
+        assert short["next", "terminated"][-1].item() and short.shape[0] < 40
+        assert short["next", "fail"][-1].item()
+        # ...with it the same episode goes on to truncation, fail still reported along the way.
+        env.set_seed(1)
+        torch.manual_seed(0)
+        roll = env.rollout(100)
+        assert roll.shape == torch.Size([40])
+        assert torch.equal(roll["next", "observation"][: short.shape[0]], short["next", "observation"])
+        assert roll["next", "fail"][short.shape[0] - 1].item()
+        assert not roll["next", "terminated"].any()
+        assert torch.equal(roll["next", "done"], roll["next", "truncated"])
+        assert roll["next", "truncated"].squeeze(-1).nonzero().squeeze(-1).tolist() == [39]
+        # ManiSkill itself reports the termination: a long way before the end.
+        assert roll["next", "fail"].squeeze(-1).nonzero()[0].item() < 39
+    finally:
+        base.close()
+
+
+def test_nested_done_keys_multi_agent():
+    env = TransformedEnv(ToyEnv([2, 4, 3], terminate=[True, False, True], multi_agent=True), IgnoreTerminations())
+    assert env.output_spec == env.base_env.output_spec
+    check_env_specs(env)
+    roll = env.rollout(6, break_when_any_done=False)
+    for prefix in ((), ("agents",)):
+        term, trunc, done = (roll[("next", *prefix, k)] for k in ("terminated", "truncated", "done"))
+        assert not term.any()
+        assert torch.equal(done, trunc)
+    # Only env 1 truncates (at its 4th step, then it is reset); the terminating envs never end.
+    done = roll["next", "done"].squeeze(-1)
+    assert done.nonzero().tolist() == [[1, 3]]
+    assert roll["next", "fail"][0, 1:].all()  # the env still reports its fail
+
+
+def test_done_is_not_an_alias_of_truncated():
+    env = TransformedEnv(ToyEnv([1, 2], terminate=False), IgnoreTerminations())
+    td = env.rand_step(env.reset())
+    nxt = td["next"]
+    assert nxt["done"].tolist() == [[True], [False]]
+    assert nxt["done"].data_ptr() != nxt["truncated"].data_ptr()
+
+
+def test_reset_and_standalone_forward():
+    env = TransformedEnv(ToyEnv([1, 2]), IgnoreTerminations())
+    td = env.reset()
+    assert not td["terminated"].any() and not td["done"].any()
+    # Without an env (e.g. on stored data): the root done keys.
+    data = TensorDict(
+        terminated=torch.tensor([[True], [False]]),
+        truncated=torch.tensor([[False], [True]]),
+        done=torch.tensor([[True], [True]]),
+        batch_size=[2],
+    )
+    out = IgnoreTerminations()(data)
+    assert out["terminated"].tolist() == [[False], [False]]
+    assert out["done"].tolist() == [[False], [True]]
+    assert IgnoreTerminations is IgnoreTerminationsFromTransforms
+    assert repr(IgnoreTerminations()) == "IgnoreTerminations()"
