@@ -3,7 +3,7 @@
 Change ``from mani_skill.utils.wrappers import ActionRepeatWrapper`` to
 ``from maniskill_torchrl.wrappers import ActionRepeatWrapper``; the batched torch
 outputs stay the same. Each step is ``maniskill_torchrl._repeat.repeat_step``:
-the inner steps merged by :func:`maniskill_torchrl._masked_merge.keep_where`, the rule
+the inner steps merged by :func:`maniskill_torchrl._repeat.keep_where`, the rule
 of the TorchRL ``ActionRepeat`` transform, directly on ManiSkill's dicts (the CPU
 engine's workers repeat actions with the same function).
 """
