@@ -69,4 +69,5 @@ gpu-kit:
 
 GPU_CHECK_SUITE ?= tests/package/test_stack.py tests/envs/test_hang.py tests/package/test_install.py
 gpu-check: setup
-	$(VENV)/bin/python scripts/gpu_check.py --local outputs/gpu-check --suite $(GPU_CHECK_SUITE)
+	$(VENV)/bin/python scripts/gpu_check.py --local outputs/gpu-check --workers 2 --sweep-n 1 2 --sweep-seconds 1 \
+		--startup-limit 120 --sweep-s 400 --budget 1200 --suite $(GPU_CHECK_SUITE)

@@ -9,7 +9,7 @@ set -uo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 secs=$1; shift
 OUT_DIR="${OUT:-outputs/ppo-sweep}"
-bash scripts/gpu_check.sh --install-only "$OUT_DIR/.install" >/dev/null 2>&1 || { cat "$OUT_DIR/.install/gpu_check.log"; exit 1; }
+python3 scripts/gpu_check.py --install-only "$OUT_DIR/.install" >/dev/null 2>&1 || { cat "$OUT_DIR/.install/gpu_check.log"; exit 1; }
 rm -rf "$OUT_DIR/.install"
 export PYTHONPATH="${GPU_CHECK_SITE:-/tmp/maniskill_torchrl-gpu-site}:$(pwd)" PYTHONUNBUFFERED=1 RL_WARNINGS=0
 core=0

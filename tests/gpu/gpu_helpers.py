@@ -47,7 +47,7 @@ CPU_ENVS = 0 if CUDA else int(os.environ.get("MANISKILL_TORCHRL_GPU_TESTS_ON_CPU
 ON_CPU = CPU_ENVS > 0
 RUN = CUDA or ON_CPU
 SKIP_REASON = (
-    "needs CUDA (ManiSkill's GPU sim): run `bash scripts/gpu_check.sh` on an accelerator machine "
+    "needs CUDA (ManiSkill's GPU sim): run `python3 scripts/gpu_check.py` on an accelerator machine "
     "(benchmarks/README.md, 'GPU kit')"
 )
 # Module marker for every test module here: skipped, not failed, without CUDA.

@@ -17,7 +17,7 @@ MS-CartpoleBalance-v1 (random actions make envs fail at different steps: partial
   exactly the masked ``env_idx``, leaves every entry of the other envs bit for bit, gives the
   masked envs ManiSkill's reset data, and the next step counts on from 4 for the others.
 
-Skipped without CUDA (``bash scripts/gpu_check.sh`` runs them on an accelerator machine).
+Skipped without CUDA (``python3 scripts/gpu_check.py`` runs them on an accelerator machine).
 """
 
 from __future__ import annotations

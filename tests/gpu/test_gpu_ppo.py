@@ -12,7 +12,7 @@ logging. The test fails if this library makes more syncs than one per masked res
 which envs to reset) plus a few while building the env: none per step. The counts per culprit and the
 library's sync sites are printed and recorded as junit properties.
 
-Skipped without CUDA (``bash scripts/gpu_check.sh`` runs it on an accelerator machine).
+Skipped without CUDA (``python3 scripts/gpu_check.py`` runs it on an accelerator machine).
 """
 
 from __future__ import annotations

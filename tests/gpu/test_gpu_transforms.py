@@ -29,7 +29,7 @@ the library's transform over a :class:`~gpu_helpers.Replay` of the very same inn
   default off the CPU). On the CPU check of the test code it sums in numpy's order instead, and
   must equal ``numpy.sum`` of the recorded rewards exactly.
 
-Skipped without CUDA (``bash scripts/gpu_check.sh`` runs them on an accelerator machine).
+Skipped without CUDA (``python3 scripts/gpu_check.py`` runs them on an accelerator machine).
 """
 
 from __future__ import annotations
