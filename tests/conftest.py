@@ -21,7 +21,8 @@ _TESTS = Path(__file__).resolve().parent
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Each test gets the marker of its area, the folder it is in (registered in pyproject.toml)."""
     for item in items:
-        parts = Path(item.fspath).resolve().relative_to(_TESTS).parts
+        path = Path(item.fspath).resolve()
+        parts = path.relative_to(_TESTS).parts if path.is_relative_to(_TESTS) else ()
         if len(parts) > 1 and parts[0] != "support":
             item.add_marker(parts[0])
 
