@@ -23,7 +23,7 @@ help:
 	@echo "  make docs    build the docs site into docs/_build/html (warnings are errors), then run every"
 	@echo "               Python block of README.md and docs/ (sybil) and the site checks (tests/docs)"
 	@echo "  make demo    run the demo CLI (DEMO_ARGS=... passed to 'maniskill-torchrl demo')"
-	@echo "  make bench   run benchmarks/run_all.py"
+	@echo "  make bench   run every benchmark (python -m benchmarks.run_all)"
 	@echo "  make gpu-kit fill .gpu/ with the wheels and .debs for the GPU checks (benchmarks/README.md)"
 	@echo "  make gpu-check  dry run here of scripts/gpu_check.py, the accelerator machine's check: no kit,"
 	@echo "               .venv as it is, 2 suite workers, a short sweep, a few test files (GPU_CHECK_SUITE)"
@@ -59,7 +59,7 @@ demo: setup
 	$(VENV)/bin/maniskill-torchrl demo $(DEMO_ARGS)
 
 bench: setup
-	$(VENV)/bin/python benchmarks/run_all.py
+	$(VENV)/bin/python -m benchmarks.run_all
 
 clean:
 	rm -rf .venv .venv-nightly outputs/

@@ -19,8 +19,8 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
-from common import Result
-from machine import wait_for_quiet
+from benchmarks.common import Result
+from benchmarks.machine import wait_for_quiet
 
 __all__ = [
     "ProcessContender",
@@ -68,8 +68,8 @@ def child_result(
 
 @dataclass
 class ProcessContender:
-    """One contender run as a child process: ``argv`` (``[sys.executable, script, ...]``) must end
-    by calling :func:`child_result` once."""
+    """One contender run as a child process: ``argv`` (``[sys.executable, "-m", "benchmarks.<name>", ...]``,
+    from the repository root) must end by calling :func:`child_result` once."""
 
     name: str
     argv: list[str]

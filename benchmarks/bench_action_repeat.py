@@ -29,21 +29,19 @@ to a few tens of steps, so envs end at different inner steps):
 - both timed: ``ActionRepeat`` (finished envs skipped through ``"_step"``) against the same
   transform with skipping turned off (finished envs stepped, results discarded).
 
-Run: ``python benchmarks/bench_action_repeat.py [--rounds 9] [--steps 100] [--json out.json]``.
+Run: ``python -m benchmarks.bench_action_repeat [--rounds 9] [--steps 100] [--json out.json]``.
 """
 
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import warnings
 
 import torch
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from common import Contender, interleave, make_actions, ratio, report  # noqa: E402
-from machine import machine_line, save_json  # noqa: E402
+from benchmarks.common import Contender, interleave, make_actions, ratio, report
+from benchmarks.machine import machine_line, save_json
 
 warnings.filterwarnings("ignore")
 

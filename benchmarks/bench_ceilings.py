@@ -18,7 +18,7 @@ its start-up is measured and reported apart from the timed window. Frames are co
 window of ``--seconds`` that starts when every process has built its env and passed one step.
 Contenders alternate in rotated order over ``--rounds``; medians with min and max.
 
-    python benchmarks/bench_ceilings.py --n 1 2 --seconds 10 --rounds 5 --out outputs/ceilings.json
+    python -m benchmarks.bench_ceilings --n 1 2 --seconds 10 --rounds 5 --out outputs/ceilings.json
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ from multiprocessing import shared_memory
 
 import numpy as np
 
-from machine import machine_info
+from benchmarks.machine import machine_info
 
 _PRELOAD = ["torch", "gymnasium", "mani_skill.envs", "maniskill_torchrl._maniskill"]
 

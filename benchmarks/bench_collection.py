@@ -57,7 +57,7 @@ busy meanwhile (``others``). On a shared machine each run waits for the cores to
 first (``--max-busy``, ``--max-wait``), and a run disturbed by other jobs (``others`` above
 ``--max-others``) is run again (``--retries``).
 
-Run: ``python benchmarks/bench_collection.py [--n 1 2 4] [--repeat 1 2] [--rounds 2]
+Run: ``python -m benchmarks.bench_collection [--n 1 2 4] [--repeat 1 2] [--rounds 2]
 [--seconds 2.5] [--pipelines gym batched parallel parallel:lib] [--out results.json]``.
 The default run (4 pipelines x 6 cells x 2 rounds, ~17 s per run, mostly start-up: every
 process imports torch, TorchRL and ManiSkill) takes about 14 minutes on 2 idle cores;
@@ -74,11 +74,11 @@ import sys
 import time
 import warnings
 
+from benchmarks.alternate import ProcessContender, add_alternation_args, run_alternating
+from benchmarks.collection_pipelines import ENV_ID, EPISODE, run_child
+from benchmarks.machine import machine_line, save_json
+
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, HERE)
-from alternate import ProcessContender, add_alternation_args, run_alternating  # noqa: E402
-from collection_pipelines import ENV_ID, EPISODE, run_child  # noqa: E402
-from machine import machine_line, save_json  # noqa: E402
 
 warnings.filterwarnings("ignore")
 
@@ -153,7 +153,8 @@ def main(argv: list[str] | None = None) -> int:
             cell_name(spec, n, repeat),
             [
                 sys.executable,
-                os.path.abspath(__file__),
+                "-m",
+                "benchmarks.bench_collection",
                 "--child",
                 spec,
                 "--n",

@@ -21,7 +21,7 @@ in the gym workers with ``--repeat 2``):
   envs ``ManiSkillEnv(id, batch_size=[])``, no ``CPUUnbatch``), ``sleep`` / ``spin`` (the parent's
   wait, instead of ``"auto"``).
 
-Run: ``python benchmarks/bench_collector_settings.py [--n 2] [--repeat 1] [--rounds 16]
+Run: ``python -m benchmarks.bench_collector_settings [--n 2] [--repeat 1] [--rounds 16]
 [--pipelines gym batched batched:rp+dev batched:rp+dev+notraj]``.
 """
 
@@ -35,9 +35,7 @@ import sys
 import time
 import warnings
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, HERE)
-from collection_pipelines import (  # noqa: E402
+from benchmarks.collection_pipelines import (
     ENV_ID,
     EPISODE,
     SEED,
@@ -47,7 +45,7 @@ from collection_pipelines import (  # noqa: E402
     env_options,
     gym_vector_env,
 )
-from machine import machine_line  # noqa: E402
+from benchmarks.machine import machine_line
 
 
 def _gym(n: int, repeat: int):

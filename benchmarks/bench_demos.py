@@ -12,7 +12,7 @@ on them). Contenders take turns (``common.interleave``), this process's CPU time
   (one iterator, ``num_workers=0``); ``ManiSkillExperienceReplay.sample()`` (random steps); the
   same with ``SliceSampler(slice_len=16)`` (16 slices of 16 steps, for sequence models).
 
-Run: ``python benchmarks/bench_demos.py [--episodes 500] [--steps 50] [--rounds 7]``.
+Run: ``python -m benchmarks.bench_demos [--episodes 500] [--steps 50] [--rounds 7]``.
 """
 
 from __future__ import annotations
@@ -20,13 +20,11 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
-import sys
 import tempfile
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import Contender, interleave, report  # noqa: E402
-from machine import machine_line  # noqa: E402
+from benchmarks.common import Contender, interleave, report
+from benchmarks.machine import machine_line
 
 
 def write_file(path: Path, episodes: int, steps: int) -> None:

@@ -37,29 +37,27 @@ real loop the same code costs more (ManiSkill's step evicts it).
 raw loop then runs under it too (the same torch work on both sides: the ratios are the
 wrapper's cost). ``--grad-mode`` (``inference_mode=False``) times both in grad mode.
 
-Run: ``python benchmarks/bench_env.py [--rounds 31] [--steps 50] [--grad-mode] [--json out.json]``.
+Run: ``python -m benchmarks.bench_env [--rounds 31] [--steps 50] [--grad-mode] [--json out.json]``.
 """
 
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import warnings
 
 import torch
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import env_scenarios  # noqa: E402
-from common import ratio, report  # noqa: E402
-from env_scenarios import (  # noqa: E402
+from benchmarks import env_scenarios
+from benchmarks.common import ratio, report
+from benchmarks.env_scenarios import (
     scenario_episodes,
     scenario_overhead,
     scenario_paired,
     scenario_step,
     scenario_worker,
 )
-from machine import machine_line, save_json  # noqa: E402
+from benchmarks.machine import machine_line, save_json
 
 warnings.filterwarnings("ignore")
 

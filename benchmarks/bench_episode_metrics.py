@@ -14,19 +14,17 @@ Each contender's aten ops per step are counted too (a dispatch mode): on CUDA ev
 kernel launch, and the ops that read a value back (``nonzero``, ``item``...) are host syncs.
 Interleaved (``common.interleave``), this process's CPU time, medians over rounds.
 
-Run: ``python benchmarks/bench_episode_metrics.py [--envs 4096] [--max-len 1000] [--rounds 15]``.
+Run: ``python -m benchmarks.bench_episode_metrics [--envs 4096] [--max-len 1000] [--rounds 15]``.
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 from collections import Counter
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import Contender, interleave, report  # noqa: E402
-from machine import machine_line  # noqa: E402
+from benchmarks.common import Contender, interleave, report
+from benchmarks.machine import machine_line
 
 HERE = Path(__file__).resolve().parent
 SYNC_OPS = ("nonzero", "is_nonzero", "_local_scalar_dense", "item", "equal")

@@ -21,25 +21,23 @@ The unit is one env's physics step: steps/s = envs x physics steps / second. Tar
 ManiSkillEnv within 1.05x of the raw loop's time, and at least as fast as ManiSkillVectorEnv.
 
 Without CUDA it prints why and exits 0 (``make bench`` runs every bench_*.py). On an accelerator
-machine: ``bash scripts/gpu_check.sh`` (benchmarks/README.md, "GPU kit").
+machine: ``python3 scripts/gpu_check.py`` (benchmarks/README.md, "GPU kit").
 
-Run: ``python benchmarks/bench_gpu.py [--envs 256 1024 4096] [--steps 40] [--rounds 7] [--out bench_gpu.json]``.
+Run: ``python -m benchmarks.bench_gpu [--envs 256 1024 4096] [--steps 40] [--rounds 7] [--out bench_gpu.json]``.
 """
 
 from __future__ import annotations
 
 import argparse
 import gc
-import os
 import sys
 import time
 import warnings
 
 import torch
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from common import Contender, interleave, make_actions, ratio, report  # noqa: E402
-from machine import machine_line, save_json  # noqa: E402
+from benchmarks.common import Contender, interleave, make_actions, ratio, report
+from benchmarks.machine import machine_line, save_json
 
 warnings.filterwarnings("ignore")
 
@@ -162,7 +160,7 @@ def main(argv=None) -> int:
     elif not torch.cuda.is_available():
         msg = (
             "bench_gpu: no CUDA device (torch.cuda.is_available() is False): nothing measured. "
-            "Run it on a GPU machine: bash scripts/gpu_check.sh (benchmarks/README.md, 'GPU kit')."
+            "Run it on a GPU machine: python3 scripts/gpu_check.py (benchmarks/README.md, 'GPU kit')."
         )
         print(msg)
         if args.out:

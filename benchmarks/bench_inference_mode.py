@@ -11,7 +11,7 @@ Reported: the thread's CPU time per step, median over blocks, and its ratio to `
 env per mode because an env used under inference mode holds inference tensors, which a
 later call outside inference mode may not update (PickCube-v1's ``reset`` raises).
 
-Run: ``python benchmarks/bench_inference_mode.py [--env-id PickCube-v1] [--blocks 40] [--block 25]``.
+Run: ``python -m benchmarks.bench_inference_mode [--env-id PickCube-v1] [--blocks 40] [--block 25]``.
 """
 
 from __future__ import annotations

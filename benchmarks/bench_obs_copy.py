@@ -14,7 +14,7 @@ lavapipe) gives the scale. Contenders interleaved (``common.interleave``), this 
 medians over rounds.
 
 Then, with ``--transfers``, the device rule counted on a stand-in CUDA machine (the test double of
-``tests/cuda_double.py``: ManiSkill's CPU sim with ``sapien_cuda`` pictures on a second torch
+``tests/support/cuda_double.py``: ManiSkill's CPU sim with ``sapien_cuda`` pictures on a second torch
 device): the copies between host and device that one ``env.step`` makes, raw ManiSkill's own
 (the double's render upload included) and the library's on top, for ``env.device`` the CPU
 (pictures moved to the host) and the device (pictures copied there, the host outputs gathered
@@ -29,8 +29,8 @@ clock with the device synchronised at the end of each timed block, medians and t
 cuda / cpu per case. All in this one process (a fresh process takes 20-30 s to start on the
 H100 machine); under 90 s there. Without CUDA it says so and writes ``{"skipped": ...}``.
 
-Run: ``python benchmarks/bench_obs_copy.py [--batches 2 64] [--rounds 31] [--transfers]``, or
-``python benchmarks/bench_obs_copy.py --timing --out device_copy.json``.
+Run: ``python -m benchmarks.bench_obs_copy [--batches 2 64] [--rounds 31] [--transfers]``, or
+``python -m benchmarks.bench_obs_copy --timing --out device_copy.json``.
 """
 
 from __future__ import annotations
@@ -44,9 +44,8 @@ import sys
 import warnings
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import Contender, interleave, make_actions, paired_ratio, report  # noqa: E402
-from machine import machine_line  # noqa: E402
+from benchmarks.common import Contender, interleave, make_actions, paired_ratio, report
+from benchmarks.machine import machine_line
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -60,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--timing", action="store_true", help="time device='cuda' against 'cpu' (CUDA only)")
     parser.add_argument("--out", type=Path, help="--timing: the JSON file to write")
     parser.add_argument("--_under-double", dest="under_double", action="store_true", help=argparse.SUPPRESS)
-    # --timing's logic tried under the CUDA double (tests/cuda_double.py): its device, smaller batches.
+    # --timing's logic tried under the CUDA double (tests/support/cuda_double.py): its device, smaller batches.
     parser.add_argument("--_timing-device", dest="timing_device", default="cuda", help=argparse.SUPPRESS)
     parser.add_argument(
         "--_timing-batches", dest="timing_batches", type=int, nargs="+", default=[1, 8], help=argparse.SUPPRESS
@@ -122,10 +121,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.transfers:
         root = Path(__file__).resolve().parents[1]
         tests = root / "tests"
-        paths = [tests / "cuda_site", tests, root, *filter(None, [os.environ.get("PYTHONPATH")])]
+        paths = [tests / "cuda" / "cuda_site", tests, root, *filter(None, [os.environ.get("PYTHONPATH")])]
         env_vars = dict(os.environ, MANISKILL_TORCHRL_CUDA_DOUBLE="1", PYTHONPATH=os.pathsep.join(map(str, paths)))
-        cmd = [sys.executable, __file__, "--_under-double", "--size", str(args.size), "--steps", str(args.steps)]
-        return subprocess.run(cmd, env=env_vars).returncode
+        cmd = [sys.executable, "-m", "benchmarks.bench_obs_copy", "--_under-double", "--size", str(args.size)]
+        return subprocess.run([*cmd, "--steps", str(args.steps)], env=env_vars, cwd=root).returncode
     return 0
 
 
@@ -135,8 +134,8 @@ def count_transfers(size: int, steps: int) -> int:
     import gymnasium as gym
     import torch
 
-    import cuda_double
     from maniskill_torchrl import ManiSkillEnv
+    from support import cuda_double
 
     cam = dict(obs_mode="rgb", sensor_configs=dict(width=size, height=size), sim_backend="cpu")
     kinds = ("d2h", "h2d", "d2d")

@@ -16,7 +16,7 @@ script reuses); medians over rounds. Start-up (Ray's head processes, actor start
 is not timed; it is reported as ``start-up``. ``workers cpu`` counts every process under the
 child (for ``ray`` that includes Ray's own raylet / GCS / agents).
 
-Run: ``python benchmarks/bench_ray.py [--k 1 2] [--rounds 2] [--seconds 5] [--out results.json]``
+Run: ``python -m benchmarks.bench_ray [--k 1 2] [--rounds 2] [--seconds 5] [--out results.json]``
 (about 4 minutes on 2 cores with the defaults).
 """
 
@@ -30,11 +30,11 @@ import statistics
 import sys
 import time
 
+from benchmarks.alternate import ProcessContender, add_alternation_args, child_result, run_alternating
+from benchmarks.collection_pipelines import ENV_ID, EPISODE, SEED, _CPUMeter, _quiet, _time_collector, _worker_env
+from benchmarks.machine import machine_line, save_json
+
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, HERE)
-from alternate import ProcessContender, add_alternation_args, child_result, run_alternating  # noqa: E402
-from collection_pipelines import ENV_ID, EPISODE, SEED, _CPUMeter, _quiet, _time_collector, _worker_env  # noqa: E402
-from machine import machine_line, save_json  # noqa: E402
 
 PIPELINES = ["multisync", "ray"]
 
@@ -150,7 +150,8 @@ def main(argv: list[str] | None = None) -> int:
             cell(kind, k),
             [
                 sys.executable,
-                os.path.abspath(__file__),
+                "-m",
+                "benchmarks.bench_ray",
                 "--child",
                 kind,
                 "--k",

@@ -6,7 +6,7 @@ each episode's end, and prints the medians of the trace's summary per N: the who
 sub-env's wake latency (send to wake) and sim time, the way back (last sim end to collect end),
 how often each sub-env was the straggler, and the share of a step a sub-env spends not stepping.
 
-    python benchmarks/bench_trace.py --n 1 2 --steps 500 --out outputs/trace.json
+    python -m benchmarks.bench_trace --n 1 2 --steps 500 --out outputs/trace.json
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import os
 
 import torch
 
-from machine import machine_info
+from benchmarks.machine import machine_info
 
 
 def trace_one(env_id: str, n: int, steps: int, in_process: bool) -> dict:

@@ -23,22 +23,20 @@ Scenarios:
 - ``ActionRepeatWrapper(repeat=2)`` and ``(repeat=3)``: batched torch actions,
   a step is one outer step.
 
-Run: ``python benchmarks/bench_wrappers.py [--rounds 30] [--steps 100] [--json out.json]``.
+Run: ``python -m benchmarks.bench_wrappers [--rounds 30] [--steps 100] [--json out.json]``.
 """
 
 from __future__ import annotations
 
 import argparse
-import os
 import statistics
 import sys
 import warnings
 
 import torch
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from common import Contender, Result, interleave, make_actions, paired_ratio  # noqa: E402
-from machine import machine_line, save_json  # noqa: E402
+from benchmarks.common import Contender, Result, interleave, make_actions, paired_ratio
+from benchmarks.machine import machine_line, save_json
 
 warnings.filterwarnings("ignore")
 

@@ -14,7 +14,7 @@ import sys
 import time
 import warnings
 
-from alternate import child_ready, child_result
+from benchmarks.alternate import child_ready, child_result
 
 ENV_ID = "PickCube-v1"
 EPISODE = 50

@@ -26,7 +26,7 @@ one child process per contender, in the same rotating order).
 
 Example::
 
-    from common import Contender, interleave, report
+    from benchmarks.common import Contender, interleave, report
 
     results = interleave(
         [Contender("raw", run_raw, setup=reset_raw), Contender("wrapped", run_wrapped, setup=reset_wrapped)],

@@ -12,7 +12,7 @@ import contextlib
 import numpy as np
 import torch
 
-from common import Contender, interleave, make_actions
+from benchmarks.common import Contender, interleave, make_actions
 
 SEED = 0
 #: Extra ``ManiSkillEnv`` keywords for every scenario (``bench_env.py --grad-mode``: ``inference_mode=False``).

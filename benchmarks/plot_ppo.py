@@ -2,7 +2,7 @@
 its ``metrics.jsonl`` (success_once, success_at_end and return against frames, wall minutes on a
 second axis) with the random-policy baseline as a dashed line.
 
-Run: ``python benchmarks/plot_ppo.py outputs/ppo/metrics.jsonl --out benchmarks/ppo_pushcube_cpu.png``.
+Run: ``python -m benchmarks.plot_ppo outputs/ppo/metrics.jsonl --out benchmarks/ppo_pushcube_cpu.png``.
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ run's random-policy evaluation (where it has one) as a dashed line.
 
 Run::
 
-    python benchmarks/plot_runs.py sac=outputs/sac/metrics.jsonl ppo=benchmarks/ppo/pushcube_cpu_30min_bootstrap.jsonl \
+    python -m benchmarks.plot_runs sac=outputs/sac/metrics.jsonl ppo=benchmarks/ppo/pushcube_cpu_30min_bootstrap.jsonl \
         --title "PushCube-v1, 2 CPU cores" --out benchmarks/sac/pushcube.png
 """
 

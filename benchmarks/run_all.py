@@ -1,4 +1,4 @@
-"""Runs every ``benchmarks/bench_*.py`` in turn, each in its own process.
+"""Runs every ``benchmarks.bench_*`` module in turn, each in its own process.
 
 Each script prints its own tables (see ``benchmarks/RESULTS.md`` for the recorded
 numbers); this runner prints the machine once, runs the scripts one after the
@@ -7,10 +7,10 @@ codes and wall times. It exits non-zero if any script failed.
 
 Usage::
 
-    python benchmarks/run_all.py                 # all of them
-    python benchmarks/run_all.py env wrappers    # bench_env.py and bench_wrappers.py only
-    python benchmarks/run_all.py --list
-    python benchmarks/run_all.py -- --rounds 5   # arguments after -- go to every script
+    python -m benchmarks.run_all                 # all of them
+    python -m benchmarks.run_all env wrappers    # bench_env.py and bench_wrappers.py only
+    python -m benchmarks.run_all --list
+    python -m benchmarks.run_all -- --rounds 5   # arguments after -- go to every script
 """
 
 from __future__ import annotations
@@ -22,9 +22,9 @@ import subprocess
 import sys
 import time
 
+from benchmarks.machine import machine_line
+
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, HERE)
-from machine import machine_line  # noqa: E402
 
 
 def discover() -> list[str]:
@@ -64,10 +64,8 @@ def main(argv: list[str] | None = None) -> int:
     print(machine_line())
     summary = []
     for script in scripts:
-        cmd = [sys.executable, script, *forwarded]
-        print(
-            f"\n{'=' * 78}\n$ {' '.join(os.path.relpath(c) if c == script else c for c in cmd)}\n{'=' * 78}", flush=True
-        )
+        cmd = [sys.executable, "-m", f"benchmarks.{os.path.basename(script)[:-3]}", *forwarded]
+        print(f"\n{'=' * 78}\n$ python {' '.join(cmd[1:])}\n{'=' * 78}", flush=True)
         t0 = time.perf_counter()
         rc = subprocess.call(cmd, cwd=os.path.dirname(HERE))
         summary.append((short_name(script), rc, time.perf_counter() - t0))
