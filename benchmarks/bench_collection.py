@@ -29,7 +29,7 @@ Task PickCube-v1, ``obs_mode="state"``, random actions, ``max_episode_steps=50``
 - ``parallel:<options>``: the same with settings changed (comma-separated options):
   ``t1`` (``torch.set_num_threads(1)`` in the main process before building the env),
   ``nobuf`` (``use_buffers=False``), ``mp=<method>`` (``mp_start_method``),
-  ``lib`` (:class:`maniskill_torchrl.parallel.ParallelEnv`, the library's settings),
+  ``lib`` (:class:`maniskill_torchrl.parallel.ManiSkillParallelEnv`, the library's settings),
   ``wait=<spin|sleep>`` (that class with the given wait strategy), ``nobatch`` (that class
   without ``SCHED_BATCH`` workers), ``noinf`` (the workers' envs with ``inference_mode=False``),
   ``unb`` (the workers' envs ``ManiSkillEnv(id, batch_size=[])``, no ``CPUUnbatch``),

@@ -16,7 +16,7 @@ in the gym workers with ``--repeat 2``):
   none stepped in this one), ``noinf`` (``ManiSkillEnv(..., inference_mode=False)``: at N=1 the sim runs in this
   process, in grad mode);
 - ``parallel[:<options>]``: ``Collector(ParallelEnv(N, ManiSkillEnv + CPUUnbatch))`` with
-  :class:`maniskill_torchrl.parallel.ParallelEnv` (``torchrl``: TorchRL's own, started with
+  :class:`maniskill_torchrl.parallel.ManiSkillParallelEnv` (``torchrl``: TorchRL's own, started with
   ``"spawn"``), the options as above (``noinf`` in the workers' envs), ``unb`` (the workers'
   envs ``ManiSkillEnv(id, batch_size=[])``, no ``CPUUnbatch``), ``sleep`` / ``spin`` (the parent's
   wait, instead of ``"auto"``).
@@ -74,7 +74,7 @@ def _parallel(n: int, repeat: int, options: list[str]):
 
         kwargs = {"mp_start_method": "spawn"}  # fork would hang once this process holds SAPIEN
     else:
-        from maniskill_torchrl.parallel import ParallelEnv
+        from maniskill_torchrl.parallel import ManiSkillParallelEnv as ParallelEnv
 
         waits = [w for w in ("sleep", "spin") if w in opts]
         kwargs = {"wait": waits[0]} if waits else {}

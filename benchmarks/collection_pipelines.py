@@ -260,7 +260,7 @@ def child_parallel(n: int, repeat: int, seconds: float, opts: dict) -> dict:
     if "mp" in opts:
         kwargs["mp_start_method"] = opts["mp"]
     if "lib" in opts or "wait" in opts or "nobatch" in opts:
-        from maniskill_torchrl.parallel import ParallelEnv
+        from maniskill_torchrl.parallel import ManiSkillParallelEnv as ParallelEnv
 
         if "wait" in opts:
             kwargs["wait"] = opts["wait"]
