@@ -53,7 +53,9 @@ def bench_size(env_id: str, n: int, steps: int, rounds: int, warmup: int, verbos
     from maniskill_torchrl import ActionRepeat, EpisodeMetrics, ManiSkillEnv
 
     t0 = time.perf_counter()
-    env = ManiSkillEnv(env_id, num_envs=n, sim_backend=backend, obs_mode="state")
+    # inference_mode=False, the GPU sim's default, in the CPU dry run too: the raw loop and
+    # ManiSkillVectorEnv step the same gym env in grad mode, which inference tensors would break.
+    env = ManiSkillEnv(env_id, num_envs=n, sim_backend=backend, obs_mode="state", inference_mode=False)
     build_s = time.perf_counter() - t0
     raw = env._env  # the gym env ManiSkillEnv made: same instance, same physics for all
     stacked = TransformedEnv(env, Compose(ActionRepeat(2), EpisodeMetrics()))
