@@ -123,26 +123,40 @@ def longest_chain(module: str, seen: tuple[str, ...] = ()) -> list[str]:
     return best
 
 
+def upward(module: str) -> list[str]:
+    """The modules ``module`` imports from a layer above its own."""
+    return sorted(n for n in imports(module) if layer(n) > layer(module))
+
+
+def long_chains(modules) -> dict[str, str]:
+    """The import chains of more than :data:`MAX_CHAIN` modules, from each of ``modules``."""
+    chains = {m: longest_chain(m) for m in modules}
+    return {m: " -> ".join(c) for m, c in chains.items() if len(c) > MAX_CHAIN}
+
+
 @pytest.mark.parametrize("module", [m for m in MODULES if m != PKG])
 def test_no_import_runs_upward(module: str) -> None:
-    up = sorted(n for n in imports(module) if layer(n) > layer(module))
+    up = upward(module)
     assert not up, f"{module} ({LAYERS[layer(module)][0]}) imports from a layer above it: {up}"
 
 
 def test_import_chains_are_short() -> None:
-    chains = {m: longest_chain(m) for m in MODULES}
-    long = {m: " -> ".join(c) for m, c in chains.items() if len(c) > MAX_CHAIN}
+    long = long_chains(MODULES)
     assert not long, f"import chains longer than {MAX_CHAIN} modules: {long}"
-    assert max(len(c) for c in chains.values()) >= 5  # the parser sees chains at all
+    assert max(len(longest_chain(m)) for m in MODULES) >= 5  # the parser sees chains at all
 
 
-def test_the_layer_table_catches_an_upward_import() -> None:
-    """The checks can fail: the engine importing the gym shim is upward, and so is a helper
-    importing the envs."""
-    assert layer(f"{PKG}.wrappers.gymnasium") > layer(f"{PKG}.engines._worker")
-    assert layer(f"{PKG}.envs.maniskill") > layer(f"{PKG}._masked_merge")
-    assert layer(f"{PKG}.engines.cpu_vector") < layer(f"{PKG}.envs.maniskill")
-    assert any(n.startswith(f"{PKG}.engines.") for n in imports(f"{PKG}.envs.maniskill"))
+def test_the_checks_fail_on_a_bad_graph(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The same two checks, on a made-up graph: a helper importing the envs is upward, and a
+    chain of eight modules is too long."""
+    chain = [f"{PKG}.cli", f"{PKG}.pipeline", f"{PKG}.transforms.action_repeat", f"{PKG}.envs.maniskill"]
+    chain += [f"{PKG}.engines.cpu_vector", f"{PKG}.engines._worker", f"{PKG}._repeat", f"{PKG}._private"]
+    graph = dict(zip(chain, ({n} for n in chain[1:]))) | {f"{PKG}._private": {f"{PKG}.envs.maniskill"}}
+    monkeypatch.setattr(sys.modules[__name__], "imports", lambda m: frozenset(graph.get(m, ())))
+    assert upward(f"{PKG}._private") == [f"{PKG}.envs.maniskill"]
+    assert upward(f"{PKG}.envs.maniskill") == []
+    assert list(long_chains([f"{PKG}.cli"])) == [f"{PKG}.cli"]
+    assert not long_chains([f"{PKG}.pipeline"])  # seven modules: within the limit
 
 
 def _gymnasium_vector(module: str) -> list[str]:
