@@ -9,8 +9,9 @@ the picklable factory that builds the env in the worker (and the parent's own su
 writes its row the same way).
 
 Like ``cpu_vector.py``, this module imports neither TorchRL nor the rest of the library beyond
-``_maniskill`` and the pool's two step bytes (``_pool.py``) when it loads: the workers import it, and start faster without them. A worker
-told to repeat actions imports ``_repeat`` (the gym shim's repeat step) then.
+``_maniskill`` and the pool's two step bytes (``_pool.py``) when it loads: the workers import it,
+and start faster without them. A worker told to repeat actions imports ``_repeat`` (the gym shim's
+repeat step) then.
 """
 
 from __future__ import annotations
