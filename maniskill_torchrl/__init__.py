@@ -36,10 +36,7 @@ def _require_maniskill() -> None:
 
 _require_maniskill()
 
-from maniskill_torchrl._moved import install as _install_moved  # noqa: E402
 from maniskill_torchrl._mp import prefer_spawn  # noqa: E402
-
-_install_moved()  # the old paths of moved modules, deprecated (maniskill_torchrl/_moved.py)
 
 # As ``import torchrl`` does: without it, the first process any library starts (gymnasium's
 # AsyncVectorEnv, say) pins "fork", and a TorchRL ParallelEnv built later in this process forks

@@ -54,7 +54,6 @@ from __future__ import annotations
 
 import os
 import time
-import warnings
 from collections import deque
 from collections.abc import Callable, Sequence
 from typing import Any, Literal
@@ -225,15 +224,3 @@ class ManiSkillParallelEnv(_TorchRLParallelEnv):
                     pass
                 raise RuntimeError(f"Cannot proceed, worker {i} dead (exit code {worker.exitcode}).")
 
-
-def __getattr__(name: str) -> Any:
-    # The class was named ``ParallelEnv`` until 0.1, which shadowed TorchRL's own.
-    if name == "ParallelEnv":
-        warnings.warn(
-            "maniskill_torchrl.parallel.ParallelEnv is deprecated and will be removed in the next release: it is "
-            "now ManiSkillParallelEnv (the old name shadowed torchrl.envs.ParallelEnv).",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        return ManiSkillParallelEnv
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -36,7 +36,6 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "_private",
             "_mp",
             "_maniskill",
-            "_moved",
             "_repeat",
             "_masked_merge",
             "_host_gather",
@@ -228,47 +227,3 @@ def test_the_engine_declares_what_the_core_reads() -> None:
     for name in ("render_frame_shape", "set_repeat", "repeat"):
         assert hasattr(CPUVectorEnv, name) and not hasattr(BaseEnv, name), name
 
-
-def _fresh_import(name: str):
-    sys.modules.pop(name, None)
-    return importlib.import_module(name)
-
-
-@pytest.mark.parametrize(
-    ("old", "new", "where"),
-    [
-        ("env", "envs.maniskill", "ManiSkillEnv"),
-        ("maniskill_wrapper", "envs.maniskill", "ManiSkillWrapper"),
-        ("maniskill_env", "envs.maniskill", "ManiSkillEnv"),
-        ("cpu_vector", "engines.cpu_vector", "CPUVectorEnv"),
-        ("errors", "envs._checks", "checked_device"),
-        ("specs", "envs._specs", "space_to_spec"),
-        ("host_gather", "_host_gather", "HostGather"),
-        ("masked_merge", "_masked_merge", "merge_step"),
-        ("masked_merge", "_repeat", "check_repeat"),
-        ("numpy_sum", "_numpy_sum", "NumpyOrderSums"),
-        ("episode_stats", "_episode_stats", "EpisodeStats"),
-        ("assertions", "_assertions", "assert_tensordict_equal"),
-        ("cli.demo", "cli", "run_demo"),
-    ],
-)
-def test_the_old_module_paths_are_deprecated_aliases(old: str, new: str, where: str) -> None:
-    """Every module that moved imports under its old name for one release, warns where it went,
-    and holds the same objects."""
-    assert not (PKG_DIR / f"{old.replace('.', '/')}.py").exists()
-    with pytest.warns(DeprecationWarning, match=rf"{PKG}\.{old} is deprecated.*{PKG}\.{new}\b"):
-        module = _fresh_import(f"{PKG}.{old}")
-    assert getattr(module, where) is getattr(importlib.import_module(f"{PKG}.{new}"), where)
-
-
-def test_an_unknown_module_is_still_an_import_error() -> None:
-    with pytest.raises(ModuleNotFoundError):
-        importlib.import_module(f"{PKG}.no_such_module")
-
-
-def test_the_old_parallel_env_name_is_a_deprecated_alias() -> None:
-    from maniskill_torchrl import parallel
-
-    with pytest.warns(DeprecationWarning, match="ManiSkillParallelEnv"):
-        old = parallel.ParallelEnv
-    assert old is parallel.ManiSkillParallelEnv
