@@ -156,28 +156,40 @@ def render_device_message(env_id: str, asked: str, in_use: dict[str, list[str]],
     )
 
 
-def make_maniskill(env_id: str, *, batched: bool = False, **kwargs: Any) -> Any:
-    """``gym.make(env_id, **kwargs)``, where SAPIEN's refusal of a second render device ("only
-    supports single-GPU rendering") becomes a :class:`RenderDeviceError` that names both devices
-    and the fixes (``batched``: the in-process sub-env of the batched CPU-sim env, which has one
-    more). The env's render device is remembered while the env lives."""
-    import gymnasium as gym
-
+@contextlib.contextmanager
+def render_device_errors(env_id: str, asked: str | None = None, *, batched: bool = False) -> Iterator[None]:
+    """While making a ManiSkill env: SAPIEN's refusal of a second render device ("only supports
+    single-GPU rendering") becomes a :class:`RenderDeviceError` that names both devices and the
+    fixes (``batched``: the in-process sub-env of the batched CPU-sim env, which has one more)."""
     try:
-        env = gym.make(env_id, **kwargs)
+        yield
     except RuntimeError as e:
         if _SINGLE_RENDER_DEVICE not in str(e):
             raise
         match = _ASKED_DEVICE.search(str(e))
-        asked = match.group(1) if match else str(kwargs.get("render_backend", "gpu"))
+        device = match.group(1) if match else str(asked or "gpu")
         raise RenderDeviceError(
-            render_device_message(env_id, asked, render_devices_in_use(), batched=batched) + f" SAPIEN said: {e}"
+            render_device_message(env_id, device, render_devices_in_use(), batched=batched) + f" SAPIEN said: {e}"
         ) from e
+
+
+def remember_render_device(env: Any, env_id: str) -> None:
+    """Keeps ``env``'s render device in mind while it lives (what the next error names)."""
     base = maniskill_base_env(env)
     device = getattr(getattr(base, "backend", None), "render_device", None)
     if device is not None:
         render_devices_in_use()  # drops the freed ones
         _RENDERING.append((weakref.ref(base), env_id, _device_name(device)))
+
+
+def make_maniskill(env_id: str, *, batched: bool = False, **kwargs: Any) -> Any:
+    """``gym.make(env_id, **kwargs)`` with :func:`render_device_errors`, its render device
+    remembered (:func:`remember_render_device`)."""
+    import gymnasium as gym
+
+    with render_device_errors(env_id, kwargs.get("render_backend"), batched=batched):
+        env = gym.make(env_id, **kwargs)
+    remember_render_device(env, env_id)
     return env
 
 

@@ -1,8 +1,14 @@
-"""The env core: :class:`ManiSkillWrapper` and :class:`ManiSkillEnv` (``envs/maniskill.py``), one
-ManiSkill adapter in one file, as TorchRL keeps its own (``torchrl/envs/libs/``)."""
+"""ManiSkill tasks as TorchRL envs.
+
+- :mod:`maniskill_torchrl.envs.maniskill`: the TorchRL adapter, one self-contained file bound for
+  TorchRL's tree (``torchrl/envs/libs/maniskill.py``; see ``upstream/``).
+- :mod:`maniskill_torchrl.envs.engine_env`: this library's :class:`ManiSkillWrapper` and
+  :class:`ManiSkillEnv`, the adapter plus the batched CPU engine and the hooks of
+  :mod:`maniskill_torchrl.envs.hooks`: what ``from maniskill_torchrl import ManiSkillEnv`` gives.
+"""
 
 from __future__ import annotations
 
-from maniskill_torchrl.envs.maniskill import ManiSkillEnv, ManiSkillWrapper
+from maniskill_torchrl.envs.engine_env import ManiSkillEnv, ManiSkillWrapper
 
 __all__ = ["ManiSkillWrapper", "ManiSkillEnv"]

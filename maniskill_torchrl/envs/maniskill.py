@@ -1,178 +1,511 @@
-"""ManiSkill 3 tasks as native TorchRL environments: :class:`ManiSkillWrapper` and :class:`ManiSkillEnv`.
+# Copyright (c) Meta Platforms, Inc. and affiliates.
+#
+# This source code is licensed under the MIT license found in the
+# LICENSE file in the root directory of this source tree.
+"""ManiSkill 3 environment wrapper.
 
-ManiSkill returns batched torch tensors (``[num_envs, ...]``) on the simulation device;
-:class:`ManiSkillWrapper` puts them into TensorDicts: no numpy round trips, no host copies, one
-TensorDict built per step, and a device copy only of what ManiSkill would overwrite later (the GPU
-sim's buffers) or what must reach another device (a CPU-sim env with ``device="cuda"``). It holds
-the whole adapter: specs learnt from the env's spaces and ``get_info()``, the entries of each
-reset and step, actions, seeding, saved states (:meth:`~ManiSkillWrapper.get_state`,
-:meth:`~ManiSkillWrapper.reset_to_state`, checked before they reach the sim: ManiSkill's
-``set_state_dict`` trusts its input), the device rule, and the CPU workers' action repeat.
-:class:`ManiSkillEnv` makes the ManiSkill env from a task id first, and is the one place that picks
-the CPU engine (:class:`~maniskill_torchrl.CPUVectorEnv`) for several CPU-sim envs; the wrapper only
-reads the capabilities an engine declares.
-
-Pure helpers live beside it: spec conversion (``maniskill_torchrl.envs._specs``), argument checks and
-errors (``maniskill_torchrl.envs._checks``), ManiSkill / SAPIEN helpers (``maniskill_torchrl._maniskill``),
-the one-transfer host gather (``maniskill_torchrl._host_gather``) and the reset seeds
-(``envs/_seeding.py``).
+This module exposes :class:`ManiSkillWrapper`, a TorchRL adapter for a ManiSkill 3
+env made with ``gym.make``, and :class:`ManiSkillEnv`, which builds a task from
+ManiSkill's registry. ManiSkill returns batched torch tensors (``[num_envs, ...]``)
+on the simulation device: each step builds one TensorDict from them, with no numpy
+round trip, and copies only what ManiSkill overwrites later (the GPU sim's buffers)
+or what must reach another device (a CPU-sim env feeding a GPU policy).
 """
 
 from __future__ import annotations
 
 import contextlib
 import importlib.util
+import warnings
 from collections.abc import Callable, Mapping, Sequence
-from types import ModuleType
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-import gymnasium as gym
+import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
+from torchrl.data.tensor_specs import (
+    Bounded,
+    Categorical,
+    Composite,
+    MultiCategorical,
+    TensorSpec,
+    Unbounded,
+)
 from torchrl.data.utils import DEVICE_TYPING
+from torchrl.envs.common import _EnvPostInit, _EnvWrapper
+from torchrl.envs.utils import _classproperty
 
-from maniskill_torchrl._host_gather import HostGather
-from maniskill_torchrl._maniskill import (
-    canonical_device,
-    check_assets,
-    default_render_backend,
-    enable_physx_gpu,
-    make_maniskill,
-    no_asset_prompt,
-    registered_env_ids,
-    render_frame_shape,
-    reuses_buffers,
-    similar_env_ids,
-    wrapper_attr,
-)
-from maniskill_torchrl._private import EnvWrapper, classproperty, new_tensordict
-from maniskill_torchrl.engines.cpu_vector import CPUVectorEnv
-from maniskill_torchrl.envs._checks import (
-    ClosedEnv,
-    action_error,
-    check_frame_skip,
-    check_info_keys,
-    checked_base_env,
-    checked_batch_size,
-    checked_device,
-)
-from maniskill_torchrl.envs._seeding import ResetSeeds
-from maniskill_torchrl.envs._specs import env_specs
-
-if TYPE_CHECKING:
-    from mani_skill.envs.sapien_env import BaseEnv
-    from torchrl.envs import EnvBase
+_has_maniskill = importlib.util.find_spec("mani_skill") is not None
 
 __all__ = ["ManiSkillWrapper", "ManiSkillEnv"]
 
-_has_maniskill = importlib.util.find_spec("mani_skill") is not None
+# ManiSkill's sim backend names, read as devices ("physx_cuda:1" is cuda:1).
+_DEVICE_ALIASES = {"physx_cpu": "cpu", "physx_cuda": "cuda", "gpu": "cuda"}
 _CPU_BACKENDS = ("cpu", "physx_cpu")
+# Top-level keys an info entry must not take: it is stored as "info_<key>" instead.
+_RESERVED_KEYS = frozenset({"reward", "done", "terminated", "truncated", "action"})
+_ALIGN = 16
 
 
-class ManiSkillWrapper(EnvWrapper):
-    """A TorchRL env around a ManiSkill 3 env made with ``gym.make``.
+def _canonical_device(device: Any) -> torch.device:
+    """``device`` with an index for CUDA, so that ManiSkill's ``"cuda"`` and TorchRL's
+    ``"cuda:0"`` compare equal; ManiSkill's backend names are read as devices."""
+    if isinstance(device, str):
+        name, sep, index = device.partition(":")
+        device = _DEVICE_ALIASES.get(name.lower(), name) + sep + index
+    device = torch.device(device)
+    if device.type == "cuda" and device.index is None:
+        index = torch.cuda.current_device() if torch.cuda.is_available() else 0
+        device = torch.device("cuda", index)
+    return device
 
-    The batch is ManiSkill's ``num_envs``. Every leaf of every output (steps, resets,
-    ``"pixels"``, ``render()``, infos, :meth:`get_state`) is on ``env.device``: by default the
-    sim's device (``cpu`` for the CPU sim, as ManiSkill's ``backend.device``, whatever renders
-    its pictures; ``cuda:<index>`` for the GPU sim). Each step builds one TensorDict from
-    ManiSkill's own tensors:
 
-    - a Box observation space goes to ``"observation"``; a Dict observation
-      space (``state_dict``, ``rgb``, ``rgbd``, ``sensor_data``...) keeps its
-      nested key paths and dtypes (images stay uint8);
-    - a Box action space reads ``"action"``; a Dict action space (multi-agent
-      tasks such as TwoRobotPickCube-v1) reads ``("action", <agent>)`` entries;
-    - ``reward`` is ``[B, 1]`` float32 for every task (a task's bool or float64 reward is cast,
-      as TorchRL's losses and value estimators expect float rewards of one dtype); ``terminated`` / ``truncated`` /
-      ``done`` are ``[B, 1]`` bool (truncation is ManiSkill's time limit);
-    - the task's tensor infos (``success``, ``fail``, ``elapsed_steps``...) are
-      top-level entries declared in the observation spec, so collectors and
-      batched envs keep them. They are learnt from ``env.unwrapped.get_info()``
-      without stepping or resetting the env. An info key that collides with an
-      observation key is stored as ``"info_<key>"``.
+def _layers(env: Any) -> list[Any]:
+    """``env`` and the gym wrappers under it, outermost first."""
+    layers = []
+    while env is not None and all(env is not seen for seen in layers):
+        layers.append(env)
+        # gym.Wrapper keeps its env in .env; ManiSkillVectorEnv in ._env.
+        inner = getattr(env, "env", None)
+        env = inner if inner is not None else getattr(env, "_env", None)
+    return layers
 
-    Nothing this env returns is written into later by the simulator. Where ManiSkill hands out
-    buffers that it overwrites (the GPU sim: camera pictures, hidden actors' poses; the CPU sim
-    rendering with ``render_backend="sapien_cuda"``, the default on a CUDA machine: camera
-    pictures, on the GPU), observations, ``"pixels"``, rewards and done flags are copied, once,
-    onto ``env.device``; infos always are. The CPU sim rendering on the CPU returns fresh
-    tensors, used as they are when ``env.device`` is the CPU.
 
-    Auto-resetting envs are refused (``ManiSkillVectorEnv(auto_reset=True)``, gymnasium's
-    ``Autoreset``): TorchRL resets done envs itself, and an env that already did would lose each
-    episode's final observation. ``ManiSkillVectorEnv(env, auto_reset=False)`` is fine.
+def _maniskill_layer(env: Any, attr: str) -> bool:
+    from mani_skill.vector.wrappers.gymnasium import ManiSkillVectorEnv
 
-    Seeding: after :meth:`set_seed(s) <set_seed>` the next full reset calls
-    ManiSkill's ``reset(seed=s)``; every later full reset is seeded with the next
-    draw of ``numpy.random.RandomState(s)``, so a whole run is reproducible
-    from ``s``. ``env.reset(seed=s)`` seeds one reset directly. Partial resets
-    (a ``"_reset"`` mask that is not all True) reset only those envs through
-    ``options={"env_idx": ...}``: unseeded on the GPU sim, as ManiSkill does; on a
-    :class:`~maniskill_torchrl.CPUVectorEnv` seeded with the next draw
-    ``d`` (sub-env ``i`` gets ``d + i``), so that CPU runs stay reproducible from
-    ``s`` whatever each sub-env's process's global torch RNG holds.
+    return any(
+        isinstance(layer, ManiSkillVectorEnv) and getattr(layer, attr)
+        for layer in _layers(env)
+    )
 
-    Several CPU envs: wrap a :class:`~maniskill_torchrl.CPUVectorEnv`
-    (``ManiSkillEnv(env_id, num_envs=N)`` does it on the CPU sim): one process per
-    env (sub-env 0 in this one), the same batch ``[N]``, keys, specs and dtypes as the GPU sim.
 
-    Partial steps: ManiSkill steps all of its envs together (the GPU sim, and the sub-envs of a
-    ``CPUVectorEnv``), so a ``"_step"`` mask is not honoured (a :class:`~torchrl.envs.ParallelEnv`
-    of single CPU envs honours it). On a ``CPUVectorEnv``, :class:`~maniskill_torchrl.transforms.ActionRepeat`
-    has the sub-envs repeat each action themselves (:meth:`request_worker_repeat`).
+def _auto_resetting_wrapper(env: Any) -> str | None:
+    """The wrapper that resets done envs inside its ``step``, or None."""
+    from gymnasium.wrappers import Autoreset
 
-    The wrapper never names the CPU engine (``maniskill_torchrl.engines``; only
-    :class:`ManiSkillEnv` picks it): it reads the capabilities an engine declares
-    (``returns_copies``, ``runs_inference_mode``, ``seeds_partial_resets``,
-    ``reconfigures_partially``, ``repeats_actions``, ``render_frame_shape()``), which a ManiSkill
-    ``BaseEnv`` does not have.
+    if _maniskill_layer(env, "auto_reset"):
+        return "ManiSkillVectorEnv(auto_reset=True)"
+    if any(isinstance(layer, Autoreset) for layer in _layers(env)):
+        return "gymnasium.wrappers.Autoreset"
+    return None
+
+
+def _wrapper_attr(env: Any, name: str) -> Any:
+    """An attribute of the outermost gym wrapper that defines it."""
+    get = getattr(env, "get_wrapper_attr", None)
+    return get(name) if get is not None else getattr(env, name)
+
+
+def _reuses_buffers(base: Any) -> bool:
+    """Whether a ManiSkill ``BaseEnv`` may hand out tensors that it writes into later.
+
+    The GPU sim's camera pictures are SAPIEN's CUDA buffers, and a hidden actor's
+    pose is written in place at reset; the CPU sim rendering with ``sapien_cuda``
+    reads its cameras from CUDA buffers too. Rendering on the CPU copies.
+    """
+    if getattr(base, "gpu_sim_enabled", False):
+        return True
+    backend = getattr(getattr(base, "backend", None), "render_backend", None)
+    return backend == "sapien_cuda"
+
+
+def _render_frame_shape(base: Any) -> tuple[int, ...]:
+    """``(H, W, 3)`` of one env's ``render()`` frame, from the camera config when
+    there is one camera (several are tiled: only a render tells the layout)."""
+    configs = getattr(base, "_human_render_camera_configs", {}) or {}
+    if len(configs) == 1:
+        (cfg,) = configs.values()
+        return (cfg.height, cfg.width, 3)
+    return tuple(base.render().shape[-3:])
+
+
+def _enable_physx_gpu() -> None:
+    """Loads SAPIEN's PhysX GPU library, with an error that says what to do offline
+    (SAPIEN downloads it on first use)."""
+    import zipfile
+    from pathlib import Path
+
+    import sapien.physx as physx
+
+    if physx.is_gpu_enabled():
+        return
+    try:
+        physx.enable_gpu()
+    except (OSError, zipfile.BadZipFile) as err:
+        folder = Path.home() / ".sapien" / "physx" / physx.version()
+        raise RuntimeError(
+            "The GPU sim needs SAPIEN's PhysX GPU library (libPhysXGpu_64.so in "
+            f"{folder}), which SAPIEN downloads on first use from its "
+            f"physx-precompiled GitHub release {physx.version()}; that failed: "
+            f"{type(err).__name__}: {err}. Offline, copy that folder from a machine "
+            "where the GPU sim has run once, or use sim_backend='cpu'."
+        ) from err
+
+
+# --------------------------------------------------------------------------- specs
+def _torch_dtype(dtype: Any) -> torch.dtype:
+    if isinstance(dtype, torch.dtype):
+        return dtype
+    return torch.from_numpy(np.zeros((), dtype=dtype)).dtype
+
+
+def _bool_spec(shape: torch.Size, device: torch.device) -> TensorSpec:
+    return Categorical(n=2, shape=shape, dtype=torch.bool, device=device)
+
+
+def _space_to_spec(
+    space: Any, batch_size: torch.Size, device: torch.device
+) -> TensorSpec:
+    """One (unbatched) gymnasium space as a spec batched by ``batch_size``."""
+    import gymnasium as gym
+
+    if isinstance(space, gym.spaces.Dict):
+        return Composite(
+            {k: _space_to_spec(v, batch_size, device) for k, v in space.spaces.items()},
+            shape=batch_size,
+            device=device,
+        )
+    if isinstance(space, gym.spaces.Box):
+        shape = batch_size + torch.Size(space.shape)
+        dtype = _torch_dtype(space.dtype)
+        if dtype == torch.bool:
+            return _bool_spec(shape, device)
+        low, high = np.asarray(space.low), np.asarray(space.high)
+        if np.isfinite(low).all() and np.isfinite(high).all():
+            return Bounded(
+                low=torch.as_tensor(low, device=device).to(dtype).expand(shape),
+                high=torch.as_tensor(high, device=device).to(dtype).expand(shape),
+                shape=shape,
+                dtype=dtype,
+                device=device,
+            )
+        return Unbounded(shape=shape, dtype=dtype, device=device)
+    if isinstance(space, gym.spaces.Discrete):
+        return Categorical(
+            n=int(space.n), shape=batch_size, dtype=torch.int64, device=device
+        )
+    if isinstance(space, gym.spaces.MultiDiscrete):
+        return MultiCategorical(
+            nvec=torch.as_tensor(space.nvec),
+            shape=batch_size + torch.Size(space.shape),
+            dtype=torch.int64,
+            device=device,
+        )
+    raise TypeError(
+        f"Cannot convert the gymnasium space {space!r} into a TorchRL spec: only "
+        "Box, Discrete, MultiDiscrete and Dict spaces are supported."
+    )
+
+
+def _info_spec(
+    infos: Mapping[str, Any], batch_size: torch.Size, device: torch.device
+) -> Composite:
+    """The tensor entries of a ManiSkill info dict whose leading dims are the batch
+    (python values such as ``reconfigure`` are per-call metadata)."""
+    out = Composite(shape=batch_size, device=device)
+    for key, value in infos.items():
+        if isinstance(value, Mapping):
+            sub = _info_spec(value, batch_size, device)
+            if not sub.is_empty():
+                out[key] = sub
+            continue
+        if not isinstance(value, torch.Tensor):
+            continue
+        if value.shape[: len(batch_size)] != batch_size:
+            continue
+        if value.dtype == torch.bool:
+            out[key] = _bool_spec(value.shape, device)
+        else:
+            out[key] = Unbounded(shape=value.shape, dtype=value.dtype, device=device)
+    return out
+
+
+# --------------------------------------------------------------------------- helpers
+class _ResetSeeds:
+    """After :meth:`set` ``(s)``, :meth:`draw` gives ``s``, then the draws of
+    ``numpy.random.RandomState(s)``; ``None`` until seeded."""
+
+    def __init__(self) -> None:
+        self._rng: np.random.RandomState | None = None
+        self._next: int | None = None
+
+    def set(self, seed: int | None) -> None:
+        if seed is None:
+            self._rng = self._next = None
+            return
+        self._next = int(seed)
+        self._rng = np.random.RandomState(int(seed) % 2**32)
+
+    def draw(self) -> int | None:
+        if self._rng is None:
+            return None
+        if self._next is not None:
+            seed, self._next = self._next, None
+            return seed
+        return int(self._rng.randint(2**31))
+
+
+class _HostGather:
+    """Moves the tensors of a nested dict onto ``device`` with one host-to-device copy.
+
+    Host tensors are written into one reused host buffer (pinned on CUDA), which is
+    copied whole, without blocking; the device leaves are views of that fresh copy,
+    so nothing handed out is written again. ``TensorDict.to`` would copy leaf by
+    leaf, and its consolidated form allocates a host buffer per call. Tensors
+    already on an accelerator (``sapien_cuda`` pictures) are copied on the device.
+    Two buffers are taken in turn, each behind an event, so that a copy still
+    reading one is never overwritten. The layout is learnt from the first calls and
+    grows when new leaves appear.
+    """
+
+    def __init__(self, device: torch.device) -> None:
+        self.device = torch.device(device)
+        self._pin = self.device.type == "cuda"
+        module = (
+            torch.get_device_module(self.device) if self.device.type != "cpu" else None
+        )
+        self._event_type = getattr(module, "Event", None)
+        # path -> (dtype, shape, stride, offset in elements of dtype)
+        self._slots: dict[tuple, tuple[torch.dtype, torch.Size, tuple, int]] = {}
+        self._dtypes: tuple[torch.dtype, ...] = ()
+        self._buffers: list[tuple[torch.Tensor, dict, Any]] = []
+        self._turn = 0
+        self._pairs: list[tuple[torch.Tensor, torch.Tensor]] = []
+
+    def __call__(self, source: Mapping) -> dict:
+        pending: list[tuple[dict, Any, tuple, torch.Tensor]] = []
+        out = self._walk(source, (), pending)
+        if not pending:
+            return out
+        for _, _, path, value in pending:
+            slot = self._slots.get(path)
+            if slot is None or slot[0] != value.dtype or slot[1] != value.shape:
+                self._grow(pending)
+                break
+        slots = self._slots
+        buf, views, event = self._buffers[self._turn]
+        self._turn ^= 1
+        if event is not None:
+            event.synchronize()  # the copy out of this buffer two calls ago
+        for _, _, path, value in pending:
+            views[path].copy_(value)
+        moved = buf.to(self.device, non_blocking=self._pin, copy=True)
+        if event is not None:
+            event.record()
+        typed = {dtype: moved.view(dtype) for dtype in self._dtypes}
+        pairs = []
+        for container, key, path, _ in pending:
+            dtype, shape, stride, offset = slots[path]
+            container[key] = leaf = typed[dtype].as_strided(shape, stride, offset)
+            pairs.append((leaf, views[path]))
+        self._pairs = pairs
+        return out
+
+    def host_value(self, tensor: torch.Tensor) -> torch.Tensor | None:
+        """The host values of ``tensor``, a leaf of the last call, else None."""
+        for leaf, host in self._pairs:
+            if leaf is tensor:
+                return host
+        return None
+
+    def _walk(self, source: Mapping, prefix: tuple, pending: list) -> dict:
+        out = {}
+        for key, value in source.items():
+            if isinstance(value, torch.Tensor):
+                if value.device.type == "cpu":
+                    out[key] = None
+                    pending.append((out, key, (*prefix, key), value))
+                else:
+                    out[key] = value.to(self.device, copy=True)
+            elif isinstance(value, Mapping):
+                out[key] = self._walk(value, (*prefix, key), pending)
+            else:
+                out[key] = value
+        return out
+
+    def _grow(self, pending: list) -> None:
+        for _, _, event in self._buffers:
+            if event is not None:
+                event.synchronize()  # a copy may still read the old buffers
+        leaves = {path: (d, s) for path, (d, s, _, _) in self._slots.items()}
+        leaves.update({path: (v.dtype, v.shape) for _, _, path, v in pending})
+        # Widest dtypes first: every leaf starts at a multiple of its element size.
+        slots, offset = {}, 0
+        for path in sorted(leaves, key=lambda p: -leaves[p][0].itemsize):
+            dtype, shape = leaves[path]
+            stride = _contiguous_strides(shape)
+            slots[path] = (dtype, shape, stride, offset // dtype.itemsize)
+            offset += shape.numel() * dtype.itemsize
+        self._slots = slots
+        self._dtypes = tuple(dict.fromkeys(d for d, _ in leaves.values()))
+        size = max(-(-offset // _ALIGN) * _ALIGN, _ALIGN)
+        self._buffers = []
+        for _ in range(2):
+            buf = torch.empty(size, dtype=torch.uint8, pin_memory=self._pin)
+            typed = {d: buf.view(d) for d in self._dtypes}
+            views = {
+                path: typed[d].as_strided(shape, stride, off)
+                for path, (d, shape, stride, off) in slots.items()
+            }
+            event = self._event_type() if self._event_type is not None else None
+            self._buffers.append((buf, views, event))
+        self._turn = 0
+
+
+def _contiguous_strides(shape: torch.Size) -> tuple[int, ...]:
+    strides, step = [], 1
+    for n in reversed(shape):
+        strides.append(step)
+        step *= max(n, 1)
+    return tuple(reversed(strides))
+
+
+class _MissingActionError(KeyError):
+    """A KeyError whose message prints as written."""
+
+    def __str__(self) -> str:
+        return str(self.args[0])
+
+
+class _ClosedEnv:
+    """Takes the ManiSkill env's place after ``close()``: a closed ManiSkill sim
+    fails with unrelated AttributeErrors."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+
+    def _closed(self, *args: Any, **kwargs: Any) -> Any:
+        raise RuntimeError(
+            f"{self.name} is closed: it cannot step, reset or render any more. "
+            "Make a new env instead of reusing a closed one."
+        )
+
+    step = reset = render = _closed
+
+    @property
+    def unwrapped(self) -> Any:
+        return self._closed()
+
+    def close(self) -> None:
+        return None
+
+
+def _mapped(obs: Mapping[str, Any], leaf: Callable) -> dict:
+    """A nested observation dict with ``leaf`` applied to every tensor."""
+    return {
+        k: leaf(v)
+        if isinstance(v, torch.Tensor)
+        else _mapped(v, leaf)
+        if isinstance(v, Mapping)
+        else v
+        for k, v in obs.items()
+    }
+
+
+def _unbatch(x: torch.Tensor) -> torch.Tensor:
+    return x[0]
+
+
+def _leaf(device: torch.device, unbatched: bool, copy: bool) -> Callable | None:
+    """What a ManiSkill tensor goes through to become an entry (None: nothing)."""
+    if not copy:
+        return _unbatch if unbatched else None
+    if unbatched:
+        return lambda x: x[0].to(device, copy=True)
+    return lambda x: x.to(device, copy=True)
+
+
+def _path(key: Any) -> str:
+    key = key if isinstance(key, tuple) else (key,)
+    return "".join(f"[{k!r}]" for k in key)
+
+
+def _tensor_tree(tree: Mapping, device: torch.device | None = None) -> dict:
+    """A nested dict of tensors as plain dicts of normal tensors, copied."""
+    return {
+        k: _tensor_tree(v, device)
+        if isinstance(v, Mapping)
+        else torch.as_tensor(v).to(device, copy=True)
+        for k, v in tree.items()
+    }
+
+
+# --------------------------------------------------------------------------- wrapper
+class ManiSkillWrapper(_EnvWrapper):
+    """TorchRL wrapper for a ManiSkill 3 env made with ``gym.make``.
+
+    ManiSkill (https://github.com/haosulab/ManiSkill) simulates robot manipulation
+    tasks on SAPIEN, many envs in one process on the GPU sim, one on the CPU sim.
+    The batch is ManiSkill's ``num_envs``:
+
+    - a Box observation space goes to ``"observation"``; a Dict observation space
+      (``obs_mode="state_dict"``, ``"rgb"``, ``"rgbd"``, ``"sensor_data"``...) keeps
+      its nested keys and dtypes (images stay ``uint8``);
+    - a Box action space reads ``"action"``, a Dict one (multi-agent tasks)
+      ``("action", <agent>)``;
+    - ``"reward"`` is ``[*batch, 1]`` float32 for every task (some report bool or
+      float64 rewards), ``"terminated"`` / ``"truncated"`` / ``"done"`` are
+      ``[*batch, 1]`` bool, truncation being ManiSkill's time limit;
+    - the tensor infos (``"success"``, ``"fail"``, ``"elapsed_steps"``...) are
+      observation entries, learnt from ``get_info()`` without stepping the env; an
+      info key that collides with another key is stored as ``"info_<key>"``.
+
+    Every output is on ``env.device``, which defaults to the sim's device. Where
+    ManiSkill hands out buffers that it writes into later (the GPU sim, and the CPU
+    sim rendering with ``sapien_cuda``), outputs are copied once; elsewhere they are
+    ManiSkill's own tensors. A CPU-sim env with ``device="cuda"`` moves each step's
+    host outputs up in one non-blocking transfer and takes its actions there.
+
+    Partial resets (a ``"_reset"`` mask) reset the masked envs only, through
+    ManiSkill's ``options={"env_idx": ...}``, unseeded as ManiSkill does. After
+    :meth:`set_seed` ``(s)`` the next full reset is ``reset(seed=s)`` and each later
+    one is seeded with the next draw of ``numpy.random.RandomState(s)``.
+    :meth:`get_state` saves the sim state and ``env.reset(td, set_state=True,
+    scene_state=state)`` (or :meth:`reset_to_state`) restores it, as Isaac Lab's
+    wrapper does.
+
+    Auto-resetting envs (``ManiSkillVectorEnv(auto_reset=True)``, gymnasium's
+    ``Autoreset``) are refused: TorchRL resets done envs itself.
 
     Args:
-        env: a ManiSkill env, ``gym.make("PickCube-v1", ...)``, possibly
-            wrapped in further gym wrappers.
+        env (gymnasium.Env): a ManiSkill env, e.g. ``gym.make("PickCube-v1")``,
+            possibly inside further gym wrappers.
 
     Keyword Args:
-        device: where the outputs are, and where actions are taken (TorchRL's meaning, as
-            ``GymWrapper`` moves data): default, the sim's device. ``device="cuda"`` on a
-            CPU-sim env feeds a GPU policy: the sim steps on the CPU, its host outputs go to the
-            GPU in one non-blocking copy per step (``sapien_cuda`` pictures, already there, are
-            copied on the GPU) and actions are moved to the CPU. ``env.to(device)`` later is the
-            same. ``"cuda"`` and ``"cuda:0"`` name one device where the current CUDA device is 0.
-        from_pixels (bool): add a ``"pixels"`` entry rendered with
-            ``env.render()`` at every reset and step; the env must have been
-            made with ``render_mode="rgb_array"``.
-        pixels_only (bool): keep only ``"pixels"`` as observation.
-        info_keys (list of str, optional): the info entries to keep; defaults to
-            every tensor entry of ``env.unwrapped.get_info()``.
-        allow_done_after_reset (bool): passed to :class:`~torchrl.envs.EnvBase`.
-        inference_mode (bool): run ManiSkill's ``step``, ``reset`` and ``render`` under
-            :func:`torch.inference_mode` (default False here; :class:`ManiSkillEnv`, which
-            builds and owns its ManiSkill env, turns it on for the CPU sim). A CPU-sim step is
-            hundreds of small torch ops, and inference mode skips autograd's bookkeeping for
-            each: the same values for less CPU. The tensors this env returns are copies made
-            outside inference mode, normal tensors. ManiSkill's own state tensors become
-            inference tensors, so calling the ManiSkill env's methods yourself, outside
-            inference mode, after this env used it raises ``"Inplace update to inference
-            tensor outside InferenceMode"`` (PickCube-v1's ``reset`` does): make those calls
-            under ``torch.inference_mode()``. A
-            :class:`~maniskill_torchrl.CPUVectorEnv`'s sub-envs always use it (only
-            numpy copies leave them), whatever this says.
-        batch_size (list of int, optional): ``[num_envs]`` (the default), or ``[]`` for one
-            ManiSkill env (``num_envs=1``) as an unbatched TorchRL env: specs and entries without
-            the env dim (observations ``[*obs]``, infos ``[]``, ``reward`` and done flags ``[1]``,
-            ``"action"`` ``[*single_action_space.shape]``), what
-            :class:`~torchrl.envs.ParallelEnv` / :class:`~torchrl.envs.SerialEnv` stack. The
-            same values as :class:`~maniskill_torchrl.transforms.CPUUnbatch` on the batch-``[1]``
-            env, squeezed while each step's TensorDict is built instead of by a transform:
-            a ``TransformedEnv`` costs each step more CPU than this env's own step does.
-            ``render()`` still returns ManiSkill's batched frames.
+        device (torch.device, optional): where outputs are and actions are read.
+            Defaults to the sim's device (``"cpu"`` for the CPU sim, ``"cuda:<i>"``
+            for the GPU sim).
+        batch_size (torch.Size, optional): ``[num_envs]``, or ``[]`` for one env
+            (``num_envs=1``) without the env dim, what
+            :class:`~torchrl.envs.ParallelEnv` stacks. Defaults to ``[num_envs]``.
+        from_pixels (bool, optional): add the ``render()`` frame under
+            ``pixels_key`` at every reset and step; the env must be made with
+            ``render_mode="rgb_array"``. Defaults to ``False``.
+        pixels_only (bool, optional): keep only the pixels as observation.
+            Defaults to ``False``.
+        pixels_key (NestedKey, optional): the key of the frames. Defaults to
+            ``"pixels"``.
+        info_keys (list of str, optional): the info entries to keep. Defaults to
+            every tensor entry of ``get_info()``.
+        inference_mode (bool, optional): call ManiSkill's ``step``, ``reset`` and
+            ``render`` under :func:`torch.inference_mode`: the same values for less
+            CPU on the CPU sim; outputs are then copied out as normal tensors, and
+            your own calls into ``env.base_env`` must be made in inference mode
+            too. Defaults to ``False``.
+        allow_done_after_reset (bool, optional): passed to
+            :class:`~torchrl.envs.EnvBase`. Defaults to ``False``.
+
+    Attributes:
+        base_env: the ManiSkill ``BaseEnv``.
+        gpu_sim_enabled: whether the env runs on the GPU sim.
+        info_keys: ``{info key: tensordict key}`` of the declared infos.
 
     Examples:
         >>> import gymnasium as gym
         >>> import mani_skill.envs  # registers the tasks
-        >>> from maniskill_torchrl import ManiSkillWrapper
-        >>> env = ManiSkillWrapper(gym.make("PickCube-v1", num_envs=1, obs_mode="state"))
+        >>> from torchrl.envs import ManiSkillWrapper
+        >>> env = ManiSkillWrapper(gym.make("PickCube-v1", obs_mode="state"))
         >>> env.set_seed(0)
         >>> td = env.rollout(3)
         >>> td["next", "observation"].shape, td["next", "success"].shape
@@ -182,196 +515,313 @@ class ManiSkillWrapper(EnvWrapper):
     git_url = "https://github.com/haosulab/ManiSkill"
     libname = "mani_skill"
 
-    @classproperty
+    _lib = None
+
+    @_classproperty
+    def lib(cls):
+        if cls._lib is not None:
+            return cls._lib
+        import mani_skill
+
+        cls._lib = mani_skill
+        return mani_skill
+
+    @_classproperty
     def available_envs(cls) -> list[str]:
         if not _has_maniskill:
             return []
+        import mani_skill.envs  # noqa: F401
         from mani_skill.utils.registration import REGISTERED_ENVS
 
         return sorted(REGISTERED_ENVS)
-
-    @classproperty
-    def lib(cls) -> ModuleType:
-        import mani_skill
-
-        return mani_skill
 
     def __init__(
         self,
         env: Any = None,
         *,
         device: DEVICE_TYPING | None = None,
+        batch_size: Sequence[int] | None = None,
         from_pixels: bool = False,
         pixels_only: bool = False,
+        pixels_key: str | tuple[str, ...] = "pixels",
         info_keys: list[str] | None = None,
-        allow_done_after_reset: bool = False,
         inference_mode: bool = False,
-        batch_size: Sequence[int] | None = None,
+        allow_done_after_reset: bool = False,
         **kwargs: Any,
     ) -> None:
-        check_frame_skip(kwargs.get("frame_skip"))
-        base = checked_base_env(env, from_pixels=from_pixels, pixels_only=pixels_only)
-        self._sim_device = canonical_device(base.device)
-        device = checked_device(device, self._sim_device)
-        batch_size = checked_batch_size(batch_size, base.num_envs)
-        # An engine's sub-envs (CPUVectorEnv) run inference mode themselves and return copies.
-        self._inference = bool(inference_mode) and not getattr(base, "runs_inference_mode", False)
-        self._sim_mode = torch.inference_mode if self._inference else contextlib.nullcontext
-        # What leaves this env is copied where ManiSkill may overwrite it later (the GPU sim's
-        # buffers, sapien_cuda pictures) or made it under inference mode; nowhere else.
-        # An engine that returns fresh copies (CPUVectorEnv) needs none.
-        self._copies = self._inference or (not getattr(base, "returns_copies", False) and reuses_buffers(base))
-        self._seeds_partial_resets = getattr(base, "seeds_partial_resets", False)
-        # The workers' action repeat (request_worker_repeat): only an engine that declares
-        # repeats_actions, wrapped as is, has workers. Each step runs with the repeat asked for
-        # it, else with the one the env had when wrapped.
-        self._workers = base if env is base and getattr(base, "repeats_actions", False) else None
-        self._plain_repeat = base.repeat if self._workers is not None else 1
-        self._next_repeat = 0  # 0: no request for the next step
+        if not _has_maniskill:
+            raise ImportError(
+                "mani_skill python package was not found. Install it with: "
+                "pip install mani_skill"
+            )
+        if env is not None:
+            kwargs["env"] = env
+        # Resolved against the sim's device and num_envs in _build_env: EnvBase
+        # would fail on a "cuda" device without CUDA before any check could run.
+        self._asked_device = device
+        self._asked_batch_size = batch_size
         self._from_pixels = bool(from_pixels)
         self._pixels_only = bool(pixels_only)
-        self._requested_info_keys = info_keys
-        self._unbatched = not batch_size
-        self._set_device_rule(device)
-        self._seeds = ResetSeeds()
-        super().__init__(
-            env=env,
-            device=device,
-            batch_size=batch_size,
-            allow_done_after_reset=allow_done_after_reset,
-            **kwargs,
-        )
+        self._pixels_key = pixels_key
+        self._info_keys_asked = info_keys
+        self._inference = bool(inference_mode)
+        self._seeds = _ResetSeeds()
+        self._state_row: TensorDictBase | None = None
+        super().__init__(allow_done_after_reset=allow_done_after_reset, **kwargs)
 
-    # ------------------------------------------------------------------ build
-    def _check_kwargs(self, kwargs: dict[str, Any]) -> None:
-        if "env" not in kwargs:
-            raise TypeError("Expected an 'env' keyword argument.")
+    # --------------------------------------------------------------- build
+    def _check_kwargs(self, kwargs: dict) -> None:
+        env = kwargs.get("env")
+        if env is None:
+            raise TypeError(
+                "ManiSkillWrapper needs a ManiSkill env: "
+                "ManiSkillWrapper(gym.make('PickCube-v1')) or "
+                "ManiSkillEnv('PickCube-v1')."
+            )
+        from mani_skill.envs.sapien_env import BaseEnv
+
+        if not isinstance(getattr(env, "unwrapped", None), BaseEnv):
+            raise TypeError(
+                "ManiSkillWrapper wraps ManiSkill 3 envs only, got "
+                f"{type(env).__name__} (unwrapped: "
+                f"{type(getattr(env, 'unwrapped', env)).__name__}). Make one "
+                "with gym.make('<Task>-v1', ...) after `import mani_skill.envs`; for "
+                "other gym envs use torchrl.envs.GymWrapper."
+            )
+        self._check_options(env)
+
+    def _check_frame_skip(self) -> None:
+        if self.frame_skip != 1:
+            raise ValueError(
+                f"frame_skip={self.frame_skip} is not supported: a frame skip keeps "
+                "stepping an env after its episode ends. Use an action-repeat "
+                "transform "
+                "that stops at each env's end instead."
+            )
+
+    def _check_options(self, env: Any) -> None:
+        """The checks of any env this class wraps: what TorchRL cannot serve."""
+        self._check_frame_skip()
+        resetter = _auto_resetting_wrapper(env)
+        if resetter is not None:
+            raise ValueError(
+                f"{resetter} resets done envs inside its step and returns the next "
+                "episode's first observation in place of the last one: TorchRL resets "
+                "done envs itself. Wrap the ManiSkill env without it (gym.make(...), "
+                "or "
+                "ManiSkillVectorEnv(env, auto_reset=False)), or use ManiSkillEnv(...)."
+            )
+        base = env.unwrapped
+        freq = getattr(base, "reconfiguration_freq", 0) or 0
+        if (
+            base.num_envs > 1
+            and freq
+            and not _maniskill_layer(env, "ignore_terminations")
+        ):
+            raise ValueError(
+                f"reconfiguration_freq={freq} with num_envs={base.num_envs}: ManiSkill "
+                "cannot reconfigure some of its envs only, and TorchRL resets each "
+                "done env on its own. Make the env with reconfiguration_freq=0, or "
+                "wrap it in ManiSkillVectorEnv(env, auto_reset=False, "
+                "ignore_terminations=True) for "
+                "episodes that all end together at the time limit."
+            )
+        if self._pixels_only and not self._from_pixels:
+            raise ValueError("pixels_only=True needs from_pixels=True.")
+        if self._from_pixels and base.render_mode != "rgb_array":
+            raise ValueError(
+                "from_pixels=True needs an env made with render_mode='rgb_array' "
+                f"(got render_mode={base.render_mode!r})."
+            )
 
     def _build_env(self, env: Any, **kwargs: Any) -> Any:
         if kwargs:
-            raise TypeError(f"Unexpected arguments for ManiSkillWrapper: {sorted(kwargs)}")
+            raise TypeError(
+                f"Unexpected arguments for {type(self).__name__}: {sorted(kwargs)}"
+            )
+        base = env.unwrapped
+        self._sim_device = _canonical_device(base.device)
+        self.device = self._checked_device(self._asked_device)
+        self.batch_size = self._checked_batch_size(
+            self._asked_batch_size, base.num_envs
+        )
+        self._unbatched = not self.batch_size
+        # Outputs made under inference mode, or in buffers ManiSkill writes into
+        # later, are copied once; nothing else is.
+        self._copies = self._inference or _reuses_buffers(base)
+        self._sim_mode = (
+            torch.inference_mode if self._inference else contextlib.nullcontext
+        )
+        self._set_device_rule(self.device)
         return env
+
+    def _checked_device(self, device: Any) -> torch.device:
+        if device is None:
+            return self._sim_device
+        try:
+            device = _canonical_device(device)
+        except RuntimeError as err:
+            raise ValueError(f"device={device!r} is not a torch device: {err}") from err
+        if device.type == "cuda" and not torch.cuda.is_available():
+            raise ValueError(
+                f"device={str(device)!r}, but torch.cuda.is_available() is False: "
+                "leave "
+                f"device out (the sim's device, {self._sim_device}) or install a CUDA "
+                "build of torch."
+            )
+        return device
+
+    @staticmethod
+    def _checked_batch_size(batch_size: Any, num_envs: int) -> torch.Size:
+        if batch_size is None:
+            return torch.Size([num_envs])
+        try:
+            size = torch.Size(batch_size)
+        except TypeError:
+            size = None
+        if size == torch.Size([num_envs]) or (size == torch.Size([]) and num_envs == 1):
+            return size
+        raise ValueError(
+            f"batch_size={batch_size!r} does not fit a ManiSkill env with "
+            f"num_envs={num_envs}: leave it out (batch_size [{num_envs}]), or pass "
+            "batch_size=[] with num_envs=1 for one unbatched env."
+        )
 
     def _init_env(self) -> None:
         return None
 
     @property
-    def base_env(self) -> BaseEnv | Any:
-        """The ManiSkill ``BaseEnv`` (``env.unwrapped``), or the wrapped engine
-        (:class:`~maniskill_torchrl.CPUVectorEnv`)."""
+    def base_env(self) -> Any:
+        """The ManiSkill ``BaseEnv`` (``env.unwrapped``)."""
         return self._env.unwrapped
-
-    @property
-    def inference_mode(self) -> bool:
-        """Whether this env calls ManiSkill under :func:`torch.inference_mode` in this process.
-
-        Code that shares the ManiSkill env (``env.base_env``) should make its own calls into it
-        under ``torch.inference_mode()`` too when this is True.
-        """
-        return self._inference
 
     @property
     def gpu_sim_enabled(self) -> bool:
         return bool(self._env.unwrapped.gpu_sim_enabled)
 
-    # ------------------------------------------------------------------ device rule and specs
+    @property
+    def inference_mode(self) -> bool:
+        """Whether ManiSkill is called under :func:`torch.inference_mode`."""
+        return self._inference
+
+    @property
+    def info_keys(self) -> dict[str, str]:
+        """``{ManiSkill info key: tensordict key}`` of the declared info entries."""
+        return dict(self._info_map)
+
+    # --------------------------------------------------------------- device rule
     def _set_device_rule(self, device: torch.device) -> None:
-        """How outputs reach ``device`` and actions the sim: at build time, and again at every
-        ``env.to(device)``."""
-        # Every output goes to the env's device. What the sim hands out is copied there once where
-        # it must be: ManiSkill may write into it later (the GPU sim, sapien_cuda pictures), it
-        # was made under inference mode (the user gets normal tensors), or it is elsewhere
-        # (a CPU-sim env with device="cuda"; sapien_cuda pictures of a CPU-sim env on the CPU).
+        """How outputs reach ``device`` and actions the sim (at build and ``to``)."""
         unbatched = self._unbatched
         self._moves = device != self._sim_device
         self._copy_out = self._copies or self._moves
-        # The CPU sim feeding an accelerator: a step's host outputs go up in one transfer
-        # (HostGather), its sapien_cuda pictures are copied on the device.
-        self._gather = HostGather(device) if self._moves and self._sim_device.type == "cpu" else None
+        # The CPU sim feeding an accelerator: one transfer per step.
+        self._gather = (
+            _HostGather(device)
+            if self._moves and self._sim_device.type == "cpu"
+            else None
+        )
         if self._gather is not None:
             self._obs_leaf = self._info_leaf = _unbatch if unbatched else None
         else:
             self._obs_leaf = _leaf(device, unbatched, self._copy_out)
-            self._info_leaf = _leaf(device, unbatched, True)  # infos may alias ManiSkill's (elapsed_steps)
+            # Infos may alias ManiSkill's own tensors (elapsed_steps): always copied.
+            self._info_leaf = _leaf(device, unbatched, True)
 
-    def to(self, device: Any) -> EnvBase:
-        """This env with its outputs on ``device`` from now on, and its actions taken there.
-
-        Every output (steps, resets, ``"pixels"``, :meth:`render`, infos, :meth:`get_state`)
-        follows, as if the env had been built with ``device=device``: TorchRL calls this for
-        ``Collector(env, policy, device=...)``, ``env_device=``, ``TransformedEnv.to`` and
-        ``SerialEnv.to``. Returns this env.
-        """
-        device = checked_device(device, self._sim_device)
+    def to(self, device: DEVICE_TYPING) -> ManiSkillWrapper:
+        """This env with its outputs on ``device`` from now on, as if built so."""
+        device = self._checked_device(device)
         super().to(device)
         self._set_device_rule(self.device)
         return self
 
     def _make_specs(self, env: Any) -> None:
+        import gymnasium as gym
+
         base = env.unwrapped
-        obs_space = wrapper_attr(env, "single_observation_space")
-        act_space = wrapper_attr(env, "single_action_space")
-        frame_shape = None
+        obs_space = _wrapper_attr(env, "single_observation_space")
+        act_space = _wrapper_attr(env, "single_action_space")
+        batch, device = torch.Size([base.num_envs]), self.device
+        obs_spec = _space_to_spec(obs_space, batch, device)
+        if not isinstance(obs_spec, Composite):
+            obs_spec = Composite(observation=obs_spec, shape=batch, device=device)
+        if self._pixels_only:
+            obs_spec = Composite(shape=batch, device=device)
         if self._from_pixels:
-            # An engine (CPUVectorEnv) asks one of its sub-envs; a ManiSkill env has no such method.
-            engine_frame_shape = getattr(base, "render_frame_shape", None)
-            frame_shape = engine_frame_shape() if callable(engine_frame_shape) else render_frame_shape(base)
-        specs = env_specs(
-            obs_space,
-            act_space,
-            self._infos(base),
-            torch.Size([base.num_envs]),
-            self.device,
-            frame_shape=frame_shape,
-            pixels_only=self._pixels_only,
+            obs_spec[self._pixels_key] = Bounded(
+                low=0,
+                high=255,
+                shape=batch + torch.Size(_render_frame_shape(base)),
+                dtype=torch.uint8,
+                device=device,
+            )
+        info_spec = _info_spec(self._infos(base), batch, device)
+        reserved = set(obs_spec.keys()) | _RESERVED_KEYS
+        self._info_map: list[tuple[str, str]] = []
+        for key in info_spec.keys():
+            td_key = f"info_{key}" if key in reserved else key
+            obs_spec[td_key] = info_spec[key]
+            self._info_map.append((key, td_key))
+        action_spec = Composite(
+            action=_space_to_spec(act_space, batch, device), shape=batch, device=device
         )
+        flag = _bool_spec(batch + (1,), device)
+        done_spec = Composite(
+            done=flag,
+            terminated=flag.clone(),
+            truncated=flag.clone(),
+            shape=batch,
+            device=device,
+        )
+        reward_spec = Unbounded(shape=batch + (1,), dtype=torch.float32, device=device)
         if self._unbatched:
-            fields = ("observation", "action", "reward", "done")
-            specs = specs._replace(**{f: getattr(specs, f).squeeze(0) for f in fields})
+            obs_spec, action_spec = obs_spec.squeeze(0), action_spec.squeeze(0)
+            reward_spec, done_spec = reward_spec.squeeze(0), done_spec.squeeze(0)
         self._obs_is_dict = isinstance(obs_space, gym.spaces.Dict)
-        self._info_map: list[tuple[str, str]] = specs.info_map
-        action_spec = specs.action["action"]
-        self._action_names = list(act_space.spaces.keys()) if isinstance(act_space, gym.spaces.Dict) else None
-        self._action_shapes = (
-            {k: action_spec[k].shape for k in self._action_names}
-            if self._action_names is not None
-            else action_spec.shape
-        )
-        self.observation_spec = specs.observation
-        self.full_action_spec = specs.action
-        self.reward_spec = specs.reward
-        self.done_spec = specs.done
+        if isinstance(act_space, gym.spaces.Dict):
+            self._action_names = list(act_space.spaces.keys())
+            self._action_shapes = {
+                k: action_spec["action", k].shape for k in self._action_names
+            }
+        else:
+            self._action_names = None
+            self._action_shapes = action_spec["action"].shape
+        self.observation_spec = obs_spec
+        self.full_action_spec = action_spec
+        self.reward_spec = reward_spec
+        self.full_done_spec = done_spec
 
     def _infos(self, base: Any) -> dict[str, Any]:
-        """The info entries to declare: ``info_keys`` (checked) or all of them."""
-        # From get_info(): a probe step or reset would change what later seeded resets give.
+        # From get_info(): a probe step or reset would change later seeded resets.
         infos = base.get_info()
-        if self._requested_info_keys is None:
+        asked = self._info_keys_asked
+        if asked is None:
             return infos
-        check_info_keys(self._requested_info_keys, infos, base)
-        return {k: infos[k] for k in self._requested_info_keys}
+        missing = [k for k in asked if k not in infos]
+        if missing:
+            raise ValueError(
+                f"info_keys {missing} are not reported by {self._env_name(base)}: "
+                f"its info keys are {sorted(infos)}."
+            )
+        return {k: infos[k] for k in asked}
 
-    # ------------------------------------------------------------------ step, reset
+    # --------------------------------------------------------------- step, reset
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        if self._workers is not None:
-            self._set_worker_repeat()
         action = self._sim_action(tensordict)
         with self._sim_mode():
             obs, reward, terminated, truncated, info = self._env.step(action)
-        source = self._to_tensordict(obs, info)
-        # TorchRL's float32 reward for every task: some report bool (DrawTriangle-v1) or float64
-        # (RotateValveLevel*) rewards. The cast is a copy; done below is a new tensor. With a
-        # gather (_on_device), all stays on the host until its one transfer.
+        source = self._to_source(obs, info)
+        # float32 rewards for every task (some are bool or float64); with a gather
+        # everything stays on the host until its one transfer.
         copy = self._copy_out and self._gather is None
         if copy or reward.dtype != torch.float32:
             reward = reward.to(self.device if copy else None, torch.float32, copy=copy)
         if copy:
             terminated = terminated.to(self.device, copy=True)
             truncated = truncated.to(self.device, copy=True)
-        # ManiSkill gives [B] tensors: unsqueeze is the cheapest way to [B, 1] (view(shape) costs
-        # twice as much on the CPU sim, where each op counts), and an unbatched env's [1] entries
-        # are ManiSkill's [1] tensors as they are; other shapes go through view.
         done = torch.logical_or(terminated, truncated)
+        # ManiSkill gives [B] tensors: unsqueeze is the cheapest way to [B, 1]; an
+        # unbatched env's [1] entries are ManiSkill's [1] tensors as they are.
         if reward.ndim == terminated.ndim == truncated.ndim == 1:
             if not self._unbatched:
                 reward, terminated = reward.unsqueeze(-1), terminated.unsqueeze(-1)
@@ -384,18 +834,20 @@ class ManiSkillWrapper(EnvWrapper):
         source["terminated"] = terminated
         source["truncated"] = truncated
         source["done"] = done
-        return new_tensordict(self._on_device(source), batch_size=self.batch_size, device=self.device)
+        return TensorDict._new_unsafe(
+            self._on_device(source), batch_size=self.batch_size, device=self.device
+        )
 
     def _step_proc_data(self, next_tensordict_out: TensorDictBase) -> TensorDictBase:
-        # _step already writes reward and the three done entries with their spec shapes and dtypes,
-        # so EnvBase's reshaping and done completion have nothing to do: skip them (a measurable
-        # share of the per-step overhead on the CPU sim). Type checks still run when asked for.
+        # _step writes reward and the done entries with their spec shapes and
+        # dtypes: EnvBase's reshaping and done completion have nothing to do, and
+        # cost a measurable share of a CPU-sim step. There is no public switch.
         if self.run_type_checks:
             return super()._step_proc_data(next_tensordict_out)
         return next_tensordict_out
 
-    # ``env.reset(td, set_state=True, env_states=...)``: TorchRL's deterministic-reset convention
-    # (as IsaacLabWrapper's ``scene_state``), the saved states passed beside the tensordict.
+    # ``env.reset(td, set_state=True, scene_state=...)``: TorchRL's deterministic
+    # reset, with the snapshot passed as Isaac Lab's wrapper takes it.
     _supports_set_state = True
 
     def _reset(
@@ -405,45 +857,54 @@ class ManiSkillWrapper(EnvWrapper):
         seed: int | None = None,
         options: dict | None = None,
         set_state: bool | None = None,
-        env_states: TensorDictBase | Mapping | None = None,
+        scene_state: TensorDictBase | Mapping | None = None,
         **kwargs: Any,
     ) -> TensorDictBase:
         if kwargs:
             raise TypeError(f"Unexpected reset arguments: {sorted(kwargs)}")
-        _check_set_state(set_state, env_states)
+        if (scene_state is not None) != bool(set_state):
+            raise ValueError(
+                "A reset to a saved state takes both set_state=True and scene_state "
+                "(from env.get_state()): env.reset(td, set_state=True, "
+                "scene_state=state), or env.reset_to_state(state, td)."
+            )
         options = dict(options) if options else {}
         reset = tensordict.get("_reset", None) if tensordict is not None else None
         env_idx = None
         if reset is not None:
-            # The one host sync of a partial reset on the GPU sim: which envs. None, all or some
-            # of them is then read off the index's host-side shape.
+            # The one host sync of a partial reset on the GPU sim.
             env_idx = reset.reshape(-1).nonzero().squeeze(-1)
             if not env_idx.numel():
                 return tensordict.exclude("_reset")
             if env_idx.numel() < reset.numel():
-                env_idx = options["env_idx"] = env_idx.to(self._sim_device) if self._moves else env_idx
+                if self._moves:
+                    env_idx = env_idx.to(self._sim_device)
+                options["env_idx"] = env_idx
             else:
                 env_idx = None
         if set_state:
-            return self._reset_to_states(env_states, env_idx, seed, options)
-        if "env_idx" not in options:
+            # Nothing is drawn: the saved state makes this episode's start.
+            states = self._checked_states(scene_state).to(self._sim_device)
+            if env_idx is not None:
+                states = states[env_idx]
+            options["reset_to_env_states"] = {"env_states": states.to_dict()}
+        elif "env_idx" not in options:
             if seed is not None:
                 self._seeds.set(seed)
             seed = self._seeds.draw()
-        elif self._seeds_partial_resets:
-            # CPU sub-envs restart from drawn seeds too: reproducible from set_seed, whatever
-            # each sub-env's process's global torch RNG holds (unseeded ManiSkill resets draw from it).
-            seed = self._seeds.draw() if seed is None else seed
         with self._sim_mode():
             obs, info = self._env.reset(seed=seed, options=options)
-        source = self._on_device(self._to_tensordict(obs, info))
-        return new_tensordict(source, batch_size=self.batch_size, device=self.device)
+        return TensorDict._new_unsafe(
+            self._on_device(self._to_source(obs, info)),
+            batch_size=self.batch_size,
+            device=self.device,
+        )
 
     def _set_seed(self, seed: int | None) -> None:
         self._seeds.set(seed)
 
-    # ------------------------------------------------------------------ entries, render, actions
-    def _to_tensordict(self, obs: Any, info: Mapping[str, Any]) -> dict:
+    # --------------------------------------------------------------- entries
+    def _to_source(self, obs: Any, info: Mapping[str, Any]) -> dict:
         leaf = self._obs_leaf
         if self._pixels_only:
             source = {}
@@ -460,53 +921,47 @@ class ManiSkillWrapper(EnvWrapper):
                 source[td_key] = leaf(info[key])
         if self._from_pixels:
             frame = self._render_batched()
-            source["pixels"] = frame[0] if self._unbatched else frame
+            frame = frame[0] if self._unbatched else frame
+            if isinstance(self._pixels_key, tuple):
+                *path, last = self._pixels_key
+                node = source
+                for k in path:
+                    node = node.setdefault(k, {})
+                node[last] = frame
+            else:
+                source[self._pixels_key] = frame
         return source
 
     def _on_device(self, source: dict) -> dict:
-        """``source`` (a step's or reset's entries) on ``env.device``: as it is, or gathered up."""
         return source if self._gather is None else self._gather(source)
 
-    def host_value(self, tensor: torch.Tensor) -> torch.Tensor | None:
-        """The host values of ``tensor`` if it is an entry of this env's last step or reset that
-        came up from the host in its one transfer (a CPU-sim env on an accelerator), else None.
-
-        What :class:`~maniskill_torchrl.transforms.EpisodeMetrics` reads rewards and flags from
-        instead of the device. Valid until the next step or reset.
-        """
-        gather = self._gather
-        return None if gather is None else gather.host_value(tensor)
-
-    def render(self) -> Any:
-        """ManiSkill's ``render()`` (batched ``[B, H, W, 3]`` uint8 tensor for ``rgb_array``) on
-        ``env.device``, a copy where ManiSkill renders into a buffer that its next render overwrites."""
+    def render(self, *args: Any, **kwargs: Any) -> Any:
+        """ManiSkill's ``render()`` (``[B, H, W, 3]`` uint8 for ``rgb_array``) on
+        ``env.device``, copied where ManiSkill renders into a reused buffer."""
         with self._sim_mode():
-            frame = self._env.render()
+            frame = self._env.render(*args, **kwargs)
         if self._copy_out and isinstance(frame, torch.Tensor):
             frame = frame.to(self.device, copy=True)
         return frame
 
     def _render_batched(self) -> torch.Tensor:
-        """The ``"pixels"`` frame, batched: on ``env.device``, or as rendered where a gather moves it."""
         if self._gather is None:
             frame = torch.as_tensor(self.render(), device=self.device)
-        else:
+        else:  # moved up with the step's other host outputs
             with self._sim_mode():
                 frame = torch.as_tensor(self._env.render())
-        if frame.ndim == 3:
-            frame = frame.unsqueeze(0)
-        return frame
+        return frame.unsqueeze(0) if frame.ndim == 3 else frame
 
     def _sim_action(self, tensordict: TensorDictBase) -> Any:
-        """The step's action as ManiSkill takes it (batched, on the sim's device), or an error that
-        says what is missing or misshaped."""
+        """The step's action as ManiSkill takes it, or an error that says what is
+        missing or misshaped."""
         action = tensordict.get("action", None)
         if action is None:
             raise self._action_error(tensordict, "action", None)
         if self._action_names is None:
             if action.shape != self._action_shapes:
                 raise self._action_error(tensordict, "action", action)
-            if self._unbatched:  # ManiSkill's own batch of one
+            if self._unbatched:
                 action = action.unsqueeze(0)
             return action.to(self._sim_device) if self._moves else action
         action = {k: action.get(k, None) for k in self._action_names}
@@ -515,169 +970,155 @@ class ManiSkillWrapper(EnvWrapper):
                 raise self._action_error(tensordict, ("action", k), a)
         if self._unbatched:
             action = {k: a.unsqueeze(0) for k, a in action.items()}
-        if self._moves:  # actions come on env.device; the sim takes them on its own
+        if self._moves:
             action = {k: a.to(self._sim_device) for k, a in action.items()}
         return action
 
-    def _action_error(self, tensordict: TensorDictBase, key: str | tuple[str, str], action: Any) -> Exception:
-        expected = self._action_shapes[key[1]] if isinstance(key, tuple) else self._action_shapes
-        keys = sorted(tensordict.keys(include_nested=True, leaves_only=True), key=str)
-        return action_error(type(self).__name__, key, action, expected, keys, self.action_keys)
+    def _action_error(
+        self, tensordict: TensorDictBase, key: str | tuple, action: Any
+    ) -> Exception:
+        if action is None:
+            keys = sorted(tensordict.keys(True, True), key=str)
+            return _MissingActionError(
+                f"{type(self).__name__}.step() found no action at {key!r} in the "
+                f"tensordict, whose entries are {keys}. Set the action entries "
+                f"{self.action_keys} (shapes from env.full_action_spec), e.g. "
+                "td = env.rand_action(td), or run a policy that writes them."
+            )
+        if isinstance(key, tuple):
+            expected = self._action_shapes[key[1]]
+            return ValueError(
+                f"ManiSkill action {key[1]!r} of shape {tuple(action.shape)}, "
+                f"expected {tuple(expected)}."
+            )
+        return ValueError(
+            f"ManiSkill action of shape {tuple(action.shape)}, expected "
+            f"{tuple(self._action_shapes)} ([*env.batch_size, "
+            "*single_action_space.shape])."
+        )
 
-    # ------------------------------------------------------------------ saved states
-    _state_row: TensorDictBase | None = None  # one env's state: the layout states are checked against
-
+    # --------------------------------------------------------------- saved states
     def get_state(self) -> TensorDictBase:
-        """Every env's ManiSkill sim state (``get_state_dict()``: the poses and velocities of its
-        ``actors``, the root poses, velocities and joint positions / velocities of its
-        ``articulations``; not the controllers' targets) as a TensorDict of this env's batch on
-        ``env.device``, to reset to later with :meth:`reset_to_state` (or
-        ``env.reset(td, set_state=True, env_states=state)``).
+        """Every env's sim state (ManiSkill's ``get_state_dict()``: poses and
+        velocities of its actors and articulations, joint positions and velocities;
+        not the controllers' targets) as a TensorDict of this env's batch on
+        ``env.device``.
 
         Examples:
-            >>> from maniskill_torchrl import ManiSkillEnv
+            >>> from torchrl.envs import ManiSkillEnv
             >>> env = ManiSkillEnv("PickCube-v1", obs_mode="state")
             >>> start = env.reset(seed=1)
             >>> state = env.get_state()
             >>> _ = env.rollout(3)
-            >>> (env.reset_to_state(state)["observation"] == start["observation"]).all().item()
+            >>> td = env.reset(set_state=True, scene_state=state)
+            >>> (td["observation"] == start["observation"]).all().item()
             True
         """
         with self._sim_mode():
             state = self.base_env.get_state_dict()
-        num_envs = self.base_env.num_envs
-        state = new_tensordict(_tensor_tree(state, self.device), batch_size=torch.Size([num_envs]), device=self.device)
+        state = TensorDict._new_unsafe(
+            _tensor_tree(state, self.device),
+            batch_size=torch.Size([self.base_env.num_envs]),
+            device=self.device,
+        )
         if self._state_row is None:
             self._state_row = state[0]
         return state[0] if self._unbatched else state
 
     def reset_to_state(
-        self, env_states: TensorDictBase | Mapping, tensordict: TensorDictBase | None = None, **kwargs: Any
+        self,
+        scene_state: TensorDictBase | Mapping,
+        tensordict: TensorDictBase | None = None,
+        **kwargs: Any,
     ) -> TensorDictBase:
-        """Resets to saved ManiSkill states: every env, or those of ``tensordict``'s ``"_reset"`` mask.
+        """Resets to saved states: every env, or those of ``tensordict``'s
+        ``"_reset"`` mask.
 
-        ``env_states`` is :meth:`get_state`'s layout (a TensorDict or a nested dict of tensors):
-        one row per env (this env's batch; the rows of the envs not being reset are not read), or
-        one env's state without a batch dim (a trajectory file's ``data[i]["env_states"]``), which
-        every env being reset then takes. Its keys, shapes and dtypes are checked before anything
-        reaches the sim: a :class:`ValueError` names the entry that differs.
+        Args:
+            scene_state (TensorDictBase or dict): :meth:`get_state`'s layout, one row
+                per env, or one env's state without the batch dim (a trajectory
+                file's ``env_states`` step), which every env being reset takes. Its
+                keys, shapes and dtypes are checked before anything reaches the sim.
+            tensordict (TensorDictBase, optional): may hold a ``"_reset"`` mask.
 
-        The same as ``env.reset(tensordict, set_state=True, env_states=env_states)``; on a
-        :class:`~torchrl.envs.TransformedEnv`, call that form on the transformed env so that its
-        transforms reset too.
+        The same as ``env.reset(tensordict, set_state=True, scene_state=...)``.
         """
-        return self.reset(tensordict, set_state=True, env_states=env_states, **kwargs)
+        return self.reset(tensordict, set_state=True, scene_state=scene_state, **kwargs)
 
-    def _reset_to_states(
-        self, env_states: TensorDictBase | Mapping, env_idx: torch.Tensor | None, seed: int | None, options: dict
-    ) -> TensorDictBase:
-        """``_reset`` to saved states (``options`` may hold ``env_idx``, the envs being reset)."""
-        options["reset_to_env_states"] = {"env_states": self._state_rows(env_states, env_idx)}
-        # Nothing is drawn: the saved state, not a seed, makes this episode's start.
-        with self._sim_mode():
-            obs, info = self._env.reset(seed=seed, options=options)
-        source = self._on_device(self._to_tensordict(obs, info))
-        return new_tensordict(source, batch_size=self.batch_size, device=self.device)
-
-    def _state_rows(self, env_states: TensorDictBase | Mapping, env_idx: torch.Tensor | None) -> dict:
-        """ManiSkill's ``reset_to_env_states`` batch: the rows of the envs being reset, on the sim's device."""
-        states = self._checked_states(env_states).to(self._sim_device)
-        if env_idx is not None:
-            states = states[env_idx]  # the envs being reset, in env order
-        return states.to_dict()
-
-    def _checked_states(self, env_states: TensorDictBase | Mapping) -> TensorDictBase:
-        """``env_states`` as a ``[num_envs]`` TensorDict of the layout of :meth:`get_state`, or an
-        error that says what differs."""
-        if not isinstance(env_states, (TensorDictBase, Mapping)):
+    def _checked_states(self, states: TensorDictBase | Mapping) -> TensorDictBase:
+        """``states`` as a ``[num_envs]`` TensorDict of :meth:`get_state`'s layout,
+        or an error that names the entry that differs."""
+        if not isinstance(states, (TensorDictBase, Mapping)):
             raise TypeError(
-                "env_states must be a TensorDict or a dict of tensors (env.get_state()), "
-                f"got {type(env_states).__name__}."
+                "scene_state must be a TensorDict or a dict of tensors "
+                f"(env.get_state()), got {type(states).__name__}."
             )
-        if not isinstance(env_states, TensorDictBase):
-            env_states = TensorDict(_tensor_tree(env_states), batch_size=[])
+        if not isinstance(states, TensorDictBase):
+            states = TensorDict(_tensor_tree(states), batch_size=[])
         if self._state_row is None:
-            self.get_state()  # a read of the sim: learns the layout, changes nothing
+            self.get_state()  # a read of the sim: learns the layout
         row = self._state_row
-        want, got = set(row.keys(True, True)), set(env_states.keys(True, True))
+        want, got = set(row.keys(True, True)), set(states.keys(True, True))
         if want != got:
-            missing, extra = sorted(want - got, key=str), sorted(got - want, key=str)
+            missing = sorted(want - got, key=str)
+            extra = sorted(got - want, key=str)
             raise ValueError(
-                "env_states does not have this env's layout (env.get_state()): "
+                "scene_state does not have this env's layout (env.get_state()): "
                 + (f"missing {missing}" if missing else "")
                 + ("; " if missing and extra else "")
                 + (f"unknown {extra}" if extra else "")
-                + ". Pass a state saved from this task (env.get_state(), or a trajectory file's env_states)."
+                + ". Pass a state saved from this task (env.get_state(), or a "
+                "trajectory file's env_states)."
             )
         num_envs = self.base_env.num_envs
-        out, batches = {}, {}  # batch per entry: None for one env's state without a batch dim
+        out, rows = {}, set()
         for key in sorted(want, key=str):
-            ref, value = row.get(key), env_states.get(key)
+            ref, value = row.get(key), states.get(key)
             if value.shape == ref.shape:
-                batches[key] = None
+                rows.add(None)
             elif value.ndim == ref.ndim + 1 and value.shape[1:] == ref.shape:
-                batches[key] = value.shape[0]
+                rows.add(value.shape[0])
             else:
+                per_env = ", ".join(map(str, ref.shape))
                 raise ValueError(
-                    f"env_states{_path(key)} has shape {list(value.shape)}; this env's is {list(ref.shape)} per "
-                    f"env: pass [{num_envs}, {', '.join(map(str, ref.shape))}] (one row per env) or "
-                    f"{list(ref.shape)} (one env's state, for every env being reset)."
+                    f"scene_state{_path(key)} has shape {list(value.shape)}; this "
+                    f"env's is {list(ref.shape)} per env: pass [{num_envs}, {per_env}] "
+                    f"(one row per env) or {list(ref.shape)} (one env's state)."
                 )
-            if value.dtype != ref.dtype and not (value.is_floating_point() and ref.is_floating_point()):
-                raise ValueError(f"env_states{_path(key)} has dtype {value.dtype}; this env's is {ref.dtype}.")
-            # A plain copy: a dataset's rows are memory-mapped tensors, which cannot be sent to CPU workers.
+            if value.dtype != ref.dtype and not (
+                value.is_floating_point() and ref.is_floating_point()
+            ):
+                raise ValueError(
+                    f"scene_state{_path(key)} has dtype {value.dtype}; this env's "
+                    f"is {ref.dtype}."
+                )
+            # A plain copy: memory-mapped rows cannot be sent to worker processes.
             out[key] = value.as_subclass(torch.Tensor).to(ref.dtype, copy=True)
-        rows = set(batches.values())
         if len(rows) > 1:
-            raise ValueError(f"env_states' entries have different batches: {batches}.")
-        (rows,) = rows
-        if rows is None:
-            out = {k: v.expand(num_envs, *v.shape) for k, v in out.items()}
-        elif rows != num_envs:
             raise ValueError(
-                f"env_states has a batch of {rows} and this env has {num_envs} env(s): pass one row per env, "
-                "or one env's state without a batch dim (every env being reset then takes it)."
+                "scene_state's entries have different batches: some have a batch "
+                "dim and some do not, or their batches differ."
             )
-        states = TensorDict(batch_size=[num_envs])
+        (n_rows,) = rows
+        if n_rows is None:
+            out = {k: v.expand(num_envs, *v.shape) for k, v in out.items()}
+        elif n_rows != num_envs:
+            raise ValueError(
+                f"scene_state has a batch of {n_rows} and this env has {num_envs} "
+                "env(s): pass one row per env, or one env's state without a batch dim."
+            )
+        result = TensorDict(batch_size=[num_envs])
         for key, value in out.items():
-            states.set(key, value)
-        return states
+            result.set(key, value)
+        return result
 
-    # ------------------------------------------------------------------ the CPU workers' action repeat
-    def request_worker_repeat(self, repeat: int) -> bool:
-        """Has the next step apply its action up to ``repeat`` times inside the CPU sub-envs.
-
-        :class:`~maniskill_torchrl.transforms.ActionRepeat`'s fast path. Only a
-        :class:`~maniskill_torchrl.CPUVectorEnv` wrapped as is (with no repeat of its own) can:
-        returns whether it will, False otherwise. The request holds for the next step only; any
-        step asked for without one runs with the env's own repeat again, so a removed transform
-        leaves plain steps.
-        """
-        if self._workers is None or self._plain_repeat != 1:
-            return False
-        self._next_repeat = repeat
-        return True
-
-    def _set_worker_repeat(self) -> None:
-        """Before a step on the workers: the repeat asked for this step, else the env's own."""
-        repeat = self._next_repeat
-        if repeat:  # taken first, so that a failing step leaves no request behind
-            self._next_repeat = 0
-        else:  # no write: an nn.Module attribute write costs more than the rest of this block
-            repeat = self._plain_repeat
-        if self._workers.repeat != repeat:  # a round trip, only when the repeat changes
-            self._workers.set_repeat(repeat)
-
-    # ------------------------------------------------------------------ misc
+    # --------------------------------------------------------------- misc
     def close(self, *, raise_if_closed: bool = True) -> None:
-        """Closes the ManiSkill env and lets it go: nothing of this closed env holds it any more
-        (TorchRL keeps the constructor's ``env`` argument otherwise), so its scene and SAPIEN's
-        render engine are freed with the last reference to it elsewhere."""
+        """Closes the ManiSkill env and drops this env's reference to it, so that its
+        scene and SAPIEN's render engine are freed with the last one elsewhere."""
         env = self.__dict__.get("_env")
-        if env is not None and not isinstance(env, ClosedEnv):
-            # A stand-in that says the env is closed: a closed ManiSkill sim fails with AttributeErrors.
-            self._env = ClosedEnv(f"{type(self).__name__}({self._env_name(env)})")
-            self._workers = None
+        if env is not None and not isinstance(env, _ClosedEnv):
+            self._env = _ClosedEnv(f"{type(self).__name__}({self._env_name(env)})")
             env.close()
         super().close(raise_if_closed=raise_if_closed)
         kwargs = self.__dict__.get("_constructor_kwargs")
@@ -690,57 +1131,59 @@ class ManiSkillWrapper(EnvWrapper):
         return spec.id if spec is not None else type(env.unwrapped).__name__
 
     def __repr__(self) -> str:
-        if isinstance(self._env, ClosedEnv):
+        if isinstance(self._env, _ClosedEnv):
             return f"{self._env.name} (closed)"
-        name = self._env_name(self._env)
         return (
-            f"{type(self).__name__}(env={name}, num_envs={self._env.unwrapped.num_envs}, "
-            f"batch_size={list(self.batch_size)}, "
-            f"device={self.device}, gpu_sim={self.gpu_sim_enabled})"
+            f"{type(self).__name__}(env={self._env_name(self._env)}, "
+            f"num_envs={self._env.unwrapped.num_envs}, "
+            f"batch_size={list(self.batch_size)}, device={self.device}, "
+            f"gpu_sim={self.gpu_sim_enabled})"
         )
 
 
-class ManiSkillEnv(ManiSkillWrapper):
-    """Makes a ManiSkill task with ``gym.make`` and wraps it as a TorchRL env.
+class _ManiSkillEnvMeta(_EnvPostInit):
+    """Returns a :class:`~torchrl.envs.ParallelEnv` when ``num_workers > 1``."""
+
+    def __call__(cls, *args: Any, num_workers: int | None = None, **kwargs: Any):
+        num_workers = 1 if num_workers is None else int(num_workers)
+        if num_workers > 1:
+            from torchrl.envs import ParallelEnv
+
+            env_name = args[0] if args else kwargs.pop("env_name")
+
+            def make_env(_env_name=env_name, _kwargs=kwargs):
+                return cls(_env_name, **_kwargs)
+
+            return ParallelEnv(num_workers, make_env, metadata_from_workers=True)
+        return super().__call__(*args, **kwargs)
+
+
+class ManiSkillEnv(ManiSkillWrapper, metaclass=_ManiSkillEnvMeta):
+    """Builds a ManiSkill 3 task from its registry and wraps it.
 
     Args:
-        env_id (str): a registered ManiSkill task, e.g. ``"PickCube-v1"``.
+        env_name (str): a registered task, e.g. ``"PickCube-v1"``
+            (:attr:`available_envs` lists them).
 
     Keyword Args:
-        num_envs (int): parallel envs, the batch size. On the GPU sim, one
-            simulator; on the CPU sim (``sim_backend="cpu"``, or ``"auto"``
-            without CUDA), which holds one env per process, ``num_envs > 1``
-            runs one process per env, sub-env 0 in this one and the others in
-            workers (:class:`~maniskill_torchrl.CPUVectorEnv`, one shared-memory
-            block for the batch), with the same keys, specs and dtypes.
-        from_pixels (bool): add ``"pixels"`` (sets ``render_mode="rgb_array"``).
-        inference_mode (bool, optional): run ManiSkill under :func:`torch.inference_mode`
-            (see :class:`ManiSkillWrapper`). Default: on for a CPU-sim env in this process
-            (``num_envs=1``, and each env of a ``ParallelEnv`` of singles: less CPU per step than
-            grad mode, for the same values), off on the GPU sim; the sub-envs of ``num_envs > 1``
-            on the CPU sim always use it. Pass False if your code calls ``env.base_env``'s methods itself
-            outside inference mode.
-        batch_size (list of int, optional): ``[num_envs]`` by default. ``[]`` with ``num_envs=1``
-            makes one unbatched env, what :class:`~torchrl.envs.ParallelEnv` and
-            :class:`~torchrl.envs.SerialEnv` stack: the same specs and entries as
-            ``TransformedEnv(ManiSkillEnv(env_id), CPUUnbatch())``, without a transformed env's
-            step on top of each ManiSkill step (see :class:`ManiSkillWrapper`).
-        in_process (bool): CPU sim with ``num_envs > 1``: sub-env 0 steps in this process
-            while the workers step the others (default). False: every sub-env in a worker
-            process, this one only waits. Elsewhere every env is in this process and this is
-            not read.
-        pixels_only, info_keys, device, allow_done_after_reset: as in
-            :class:`ManiSkillWrapper`.
-        **maniskill_kwargs: passed to ``gym.make`` (``obs_mode``,
-            ``control_mode``, ``sim_backend``, ``render_mode``,
-            ``max_episode_steps``...). ``render_backend``: SAPIEN renders on one device
-            per process while any env that renders lives (``"cpu"`` and ``"cuda"`` are two):
-            an env asking for another device than the process's other envs raises a
-            ``RuntimeError`` that names both devices and the fixes (one ``render_backend``
-            per process; close and delete the other env; or make this one in another process).
+        num_envs (int, optional): envs in the ManiSkill env, the batch size. On the
+            CPU sim, which holds one env per process, use ``num_workers`` instead.
+            Defaults to ``1``.
+        num_workers (int, optional): above 1, a :class:`~torchrl.envs.ParallelEnv`
+            of ``num_workers`` such envs, one per process, is returned. Defaults to
+            ``1``.
+        inference_mode (bool, optional): see :class:`ManiSkillWrapper`. Defaults to
+            ``True`` on the CPU sim (this class owns the ManiSkill env, so nothing
+            else calls into it) and ``False`` on the GPU sim.
+        device, batch_size, from_pixels, pixels_only, pixels_key, info_keys,
+        allow_done_after_reset: see :class:`ManiSkillWrapper`. ``from_pixels=True``
+            sets ``render_mode="rgb_array"``.
+        **kwargs: passed to ``gym.make``: ``obs_mode``, ``control_mode``,
+            ``sim_backend`` (``"auto"``, ``"cpu"``, ``"gpu"``), ``render_mode``,
+            ``max_episode_steps``...
 
     Examples:
-        >>> from maniskill_torchrl import ManiSkillEnv
+        >>> from torchrl.envs import ManiSkillEnv
         >>> env = ManiSkillEnv("PickCube-v1", obs_mode="state_dict")
         >>> env.observation_spec["agent", "qpos"].shape
         torch.Size([1, 9])
@@ -751,111 +1194,92 @@ class ManiSkillEnv(ManiSkillWrapper):
 
     def __init__(
         self,
-        env_id: str,
+        env_name: str,
         *,
         num_envs: int = 1,
-        device: DEVICE_TYPING | None = None,
-        from_pixels: bool = False,
-        pixels_only: bool = False,
-        info_keys: list[str] | None = None,
-        allow_done_after_reset: bool = False,
         inference_mode: bool | None = None,
-        batch_size: Sequence[int] | None = None,
-        in_process: bool = True,
-        **maniskill_kwargs: Any,
+        **kwargs: Any,
     ) -> None:
-        if env_id not in registered_env_ids():
-            close = similar_env_ids(env_id)
+        kwargs["env_name"] = env_name
+        kwargs["num_envs"] = num_envs
+        self._inference_asked = inference_mode
+        wrapper_args = {
+            k: kwargs.pop(k)
+            for k in (
+                "device",
+                "batch_size",
+                "from_pixels",
+                "pixels_only",
+                "pixels_key",
+                "info_keys",
+                "allow_done_after_reset",
+            )
+            if k in kwargs
+        }
+        if wrapper_args.get("from_pixels"):
+            kwargs.setdefault("render_mode", "rgb_array")
+        super().__init__(**wrapper_args, **kwargs)
+
+    def _check_kwargs(self, kwargs: dict) -> None:
+        self._check_frame_skip()
+        env_name, num_envs = kwargs["env_name"], kwargs["num_envs"]
+        available = self.available_envs
+        if env_name not in available:
+            stem = env_name.split("-")[0].lower()
+            close = [e for e in available if stem and stem in e.lower()][:5]
             raise ValueError(
-                f"Unknown ManiSkill env id {env_id!r}. "
+                f"Unknown ManiSkill env {env_name!r}. "
                 + (f"Did you mean one of {close}? " if close else "")
                 + "ManiSkillEnv.available_envs lists the registered tasks."
             )
-        if not isinstance(num_envs, int) or num_envs < 1:
+        if not isinstance(num_envs, int) or isinstance(num_envs, bool) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive int, got {num_envs!r}.")
-        checked_batch_size(batch_size, num_envs)  # before any process or sim is started
-        check_frame_skip(maniskill_kwargs.pop("frame_skip", None))
-        check_assets(env_id, maniskill_kwargs)
-        if from_pixels:
-            maniskill_kwargs.setdefault("render_mode", "rgb_array")
-        self._env_id = env_id
-        backend = str(maniskill_kwargs.get("sim_backend", "auto")).lower()
-        # ManiSkill's "auto" is the CPU sim for one env; for more, the GPU sim when there is CUDA.
-        on_cpu = backend in _CPU_BACKENDS or (backend == "auto" and (num_envs == 1 or not torch.cuda.is_available()))
-        if num_envs > 1 and on_cpu:
-            # The CPU sim holds one env per process: one process per env.
-            maniskill_kwargs["sim_backend"] = "physx_cpu"
-            env = CPUVectorEnv(env_id, num_envs, in_process=in_process, **maniskill_kwargs)
-        else:
-            if not on_cpu:
-                if not torch.cuda.is_available():
-                    raise ValueError(
-                        f"sim_backend={maniskill_kwargs['sim_backend']!r} is ManiSkill's GPU sim, which needs "
-                        "CUDA, and torch.cuda.is_available() is False: use sim_backend='cpu' (or 'auto')."
-                    )
-                enable_physx_gpu()
-            with no_asset_prompt(env_id):
-                # SAPIEN renders on one device per process: a second one is a RenderDeviceError.
-                env = make_maniskill(env_id, num_envs=num_envs, **default_render_backend(maniskill_kwargs))
-        if inference_mode is None:  # this class owns the ManiSkill env: inference mode on the CPU sim
-            inference_mode = on_cpu
-        super().__init__(
-            env,
-            device=device,
-            from_pixels=from_pixels,
-            pixels_only=pixels_only,
-            info_keys=info_keys,
-            allow_done_after_reset=allow_done_after_reset,
-            inference_mode=inference_mode,
-            batch_size=batch_size,
-        )
+
+    def _on_cpu_sim(self, num_envs: int, kwargs: dict) -> bool:
+        """Whether ``gym.make`` gives the CPU sim: ManiSkill's ``"auto"`` is the CPU
+        sim for one env, and for more the GPU sim where there is CUDA."""
+        backend = str(kwargs.get("sim_backend", "auto")).lower()
+        if backend == "auto":
+            return num_envs == 1 or not torch.cuda.is_available()
+        return backend in _CPU_BACKENDS
+
+    def _build_env(self, env_name: str, num_envs: int = 1, **kwargs: Any) -> Any:
+        import gymnasium as gym
+        import mani_skill.envs  # noqa: F401
+
+        on_cpu = self._on_cpu_sim(num_envs, kwargs)
+        if not on_cpu:
+            if not torch.cuda.is_available():
+                raise ValueError(
+                    f"sim_backend={kwargs.get('sim_backend')!r} is ManiSkill's GPU "
+                    "sim, "
+                    "which needs CUDA, and torch.cuda.is_available() is False: use "
+                    "sim_backend='cpu' (or 'auto')."
+                )
+            _enable_physx_gpu()
+        elif num_envs > 1:
+            raise ValueError(
+                f"num_envs={num_envs} on ManiSkill's CPU sim, which holds one env per "
+                "process: pass num_workers={num_envs} for a ParallelEnv of single "
+                "envs, or sim_backend='gpu' on a CUDA machine."
+            )
+        with warnings.catch_warnings():
+            # ManiSkill warns that it lowers float64 spaces' precision.
+            warnings.filterwarnings("ignore", message=".*precision lowered.*")
+            env = gym.make(env_name, num_envs=num_envs, **kwargs)
+        return self._wrap_built(env, on_cpu)
+
+    def _wrap_built(self, env: Any, on_cpu: bool) -> Any:
+        """The wrapper's checks and build, on a ManiSkill env this class made."""
+        inference = self._inference_asked
+        self._inference = on_cpu if inference is None else bool(inference)
+        try:
+            self._check_options(env)
+            return super()._build_env(env)
+        except Exception:
+            env.close()
+            raise
 
     @property
-    def env_id(self) -> str:
-        return self._env_id
-
-
-def _mapped(obs: Mapping[str, Any], leaf: Callable[[torch.Tensor], torch.Tensor]) -> dict:
-    """A nested observation dict with ``leaf`` applied to every tensor (other values as they are)."""
-    return {
-        k: leaf(v) if isinstance(v, torch.Tensor) else _mapped(v, leaf) if isinstance(v, Mapping) else v
-        for k, v in obs.items()
-    }
-
-
-def _leaf(device: torch.device, unbatched: bool, copy: bool) -> Callable[[torch.Tensor], torch.Tensor] | None:
-    """What a ManiSkill tensor goes through to become an entry (None: nothing): the env dim
-    dropped for an unbatched env, one copy onto ``device`` where asked."""
-    if not copy:
-        return _unbatch if unbatched else None
-    if unbatched:
-        return lambda x: x[0].to(device, copy=True)
-    return lambda x: x.to(device, copy=True)
-
-
-def _unbatch(x: torch.Tensor) -> torch.Tensor:
-    return x[0]
-
-
-def _check_set_state(set_state: bool | None, env_states: Any) -> None:
-    """``reset(set_state=True, env_states=...)`` takes both or neither."""
-    if (env_states is not None) != bool(set_state):
-        raise ValueError(
-            "A reset to saved states takes both set_state=True and env_states (from env.get_state()): "
-            "env.reset(td, set_state=True, env_states=states), or env.reset_to_state(states, td)."
-        )
-
-
-def _path(key: Any) -> str:
-    """``("actors", "cube")`` -> ``["actors", "cube"]``, as a user indexes the TensorDict."""
-    key = key if isinstance(key, tuple) else (key,)
-    return "".join(f"[{k!r}]" for k in key)
-
-
-def _tensor_tree(tree: Mapping, device: torch.device | None = None) -> dict:
-    """A nested dict of tensors (ManiSkill's state dict) as plain dicts of normal tensors, copied
-    (onto ``device`` if given)."""
-    return {
-        k: _tensor_tree(v, device) if isinstance(v, Mapping) else torch.as_tensor(v).to(device, copy=True)
-        for k, v in tree.items()
-    }
+    def env_name(self) -> str:
+        return self._constructor_kwargs["env_name"]

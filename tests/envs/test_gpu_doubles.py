@@ -35,8 +35,8 @@ from torchrl.collectors import Collector
 from torchrl.envs import Compose, StepCounter, TransformedEnv
 
 from maniskill_torchrl import ActionRepeat, EpisodeMetrics, ManiSkillEnv, ManiSkillWrapper
-from maniskill_torchrl._maniskill import canonical_device, reuses_buffers
-from maniskill_torchrl.envs._checks import checked_base_env, checked_device
+from maniskill_torchrl.envs import maniskill as adapter
+from maniskill_torchrl.envs.maniskill import _reuses_buffers as reuses_buffers
 from support.helpers import alone_where_cuda, assert_same, bits, close_envs, make_gym_env, random_actions
 from support.toy_env import ToyEnv
 
@@ -207,9 +207,10 @@ def _reused_picture_buffers(rgb_env, keep: list) -> None:
         ("cuda:1", "cuda:0", 0, False),
     ],
 )
-def test_device_names_compare_with_an_index(a, b, current, same):
-    got = canonical_device(a, current_cuda=current) == canonical_device(b, current_cuda=current)
-    assert got == same
+def test_device_names_compare_with_an_index(a, b, current, same, monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)  # what a CUDA machine answers
+    monkeypatch.setattr(torch.cuda, "current_device", lambda: current)
+    assert (adapter._canonical_device(a) == adapter._canonical_device(b)) == same
 
 
 @pytest.fixture
@@ -224,11 +225,12 @@ def test_cuda_device_named_either_way(monkeypatch):
     "cuda:0"), else the one asked for, named either way."""
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)  # what a CUDA machine answers
     monkeypatch.setattr(torch.cuda, "current_device", lambda: 0)
-    sim = canonical_device("cuda", current_cuda=0)
+    # The wrapper's own check, on what it reads: the sim's device.
+    wrapper = type("Sim", (), {"_sim_device": adapter._canonical_device("cuda")})()
     for device in ("cuda", "cuda:0", torch.device("cuda:0"), None):
-        assert checked_device(device, sim) == torch.device("cuda", 0)
-    assert checked_device("cpu", sim) == torch.device("cpu")
-    assert checked_device("cuda:1", sim) == torch.device("cuda", 1)
+        assert ManiSkillWrapper._checked_device(wrapper, device) == torch.device("cuda", 0)
+    assert ManiSkillWrapper._checked_device(wrapper, "cpu") == torch.device("cpu")
+    assert ManiSkillWrapper._checked_device(wrapper, "cuda:1") == torch.device("cuda", 1)
 
 
 def test_device_that_is_not_there_is_refused(gym_env, monkeypatch):
@@ -418,9 +420,11 @@ def test_reconfiguration_that_partial_resets_cannot_do_is_refused(gym_env, monke
     vec = ManiSkillVectorEnv(gym_env, auto_reset=False, ignore_terminations=True)
     monkeypatch.setattr(base, "num_envs", 4)  # a GPU-sim batch
     monkeypatch.setattr(base, "reconfiguration_freq", 1)
+    # The wrapper's checks of an env, on the options they read.
+    options = type("Options", (), {"frame_skip": 1, "_pixels_only": False, "_from_pixels": False})()
     with pytest.raises(ValueError, match=r"reconfiguration_freq=1 with num_envs=4.*reconfiguration_freq=0"):
-        checked_base_env(gym_env, from_pixels=False, pixels_only=False)
+        ManiSkillWrapper._check_options(options, gym_env)
     # Envs that end together never reset partially: ManiSkillVectorEnv's own exception.
-    assert checked_base_env(vec, from_pixels=False, pixels_only=False) is base
+    ManiSkillWrapper._check_options(options, vec)
     monkeypatch.setattr(base, "reconfiguration_freq", 0)
-    assert checked_base_env(gym_env, from_pixels=False, pixels_only=False) is base
+    ManiSkillWrapper._check_options(options, gym_env)

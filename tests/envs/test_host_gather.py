@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from maniskill_torchrl._host_gather import HostGather
+from maniskill_torchrl.envs.maniskill import _HostGather as HostGather
 
 
 def _step(i: int) -> dict:

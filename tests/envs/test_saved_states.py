@@ -81,7 +81,7 @@ def test_one_envs_row_resets_every_env(pair):
     both = batched.get_state()
     both[1] = single.get_state()[0]
     mask = TensorDict({"_reset": torch.tensor([[False], [True]])}, batch_size=[2])
-    assert torch.equal(batched.reset(mask, set_state=True, env_states=both)["observation"][1], other)
+    assert torch.equal(batched.reset(mask, set_state=True, scene_state=both)["observation"][1], other)
 
 
 def test_a_worker_error_closes_the_env_with_a_clear_error():

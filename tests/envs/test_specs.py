@@ -8,13 +8,9 @@ import pytest
 import torch
 from torchrl.data import Bounded, Categorical, Composite, MultiCategorical, Unbounded
 
-from maniskill_torchrl.envs._specs import (
-    done_spec,
-    info_spec_from_infos,
-    observation_spec_from_space,
-    reward_spec,
-    space_to_spec,
-)
+from maniskill_torchrl import ManiSkillEnv
+from maniskill_torchrl.envs.maniskill import _info_spec as info_spec_from_infos
+from maniskill_torchrl.envs.maniskill import _space_to_spec as space_to_spec
 
 CPU = torch.device("cpu")
 B = torch.Size([3])
@@ -74,7 +70,7 @@ def test_nested_dict():
         extra=gym.spaces.Dict(is_grasped=gym.spaces.Box(0, 1, (), dtype=bool)),
         sensor_data=gym.spaces.Dict(base_camera=gym.spaces.Dict(rgb=gym.spaces.Box(0, 255, (8, 8, 3), np.uint8))),
     )
-    spec = observation_spec_from_space(space, B, CPU)
+    spec = space_to_spec(space, B, CPU)
     assert isinstance(spec, Composite) and spec.shape == B
     assert spec["agent", "qpos"].shape == (3, 9)
     assert spec["extra", "is_grasped"].shape == (3,) and spec["extra", "is_grasped"].dtype == torch.bool
@@ -84,9 +80,16 @@ def test_nested_dict():
     assert spec.is_in(td)
 
 
-def test_box_observation_goes_to_observation():
-    spec = observation_spec_from_space(gym.spaces.Box(-1, 1, (5,), np.float32), B, CPU)
-    assert list(spec.keys()) == ["observation"] and spec["observation"].shape == (3, 5)
+@pytest.fixture(scope="module")
+def state_env():
+    env = ManiSkillEnv("PickCube-v1", obs_mode="state")
+    yield env
+    env.close()
+
+
+def test_box_observation_goes_to_observation(state_env):
+    spec = state_env.observation_spec
+    assert "observation" in spec.keys() and spec["observation"].shape == (1, 42)
 
 
 def test_empty_batch():
@@ -119,10 +122,10 @@ def test_info_spec():
     assert list(spec["nested"].keys()) == ["a"]
 
 
-def test_done_and_reward_specs():
-    d = done_spec(B, CPU)
+def test_done_and_reward_specs(state_env):
+    d = state_env.full_done_spec
     assert set(d.keys()) == {"done", "terminated", "truncated"}
     for k in d.keys():
-        assert d[k].shape == (3, 1) and d[k].dtype == torch.bool
-    r = reward_spec(B, CPU)
-    assert r.shape == (3, 1) and r.dtype == torch.float32
+        assert d[k].shape == (1, 1) and d[k].dtype == torch.bool
+    r = state_env.reward_spec
+    assert r.shape == (1, 1) and r.dtype == torch.float32
