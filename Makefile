@@ -48,7 +48,8 @@ test-nightly:
 	@$(MAKE) --no-print-directory test MANISKILL=nightly
 
 lint: setup
-	@rc=0; $(VENV)/bin/ruff check . || rc=1; $(VENV)/bin/ruff format --check . || rc=1; exit $$rc
+	@rc=0; $(VENV)/bin/ruff check . || rc=1; $(VENV)/bin/ruff format --check . || rc=1; \
+		$(VENV)/bin/ruff format --check --line-length 88 maniskill_torchrl/envs/maniskill.py || rc=1; exit $$rc
 
 # -E: every page is read again, so a warning is never hidden by an earlier build.
 docs: setup

@@ -11,8 +11,8 @@ from typing import Any
 
 from torchrl.envs import Compose, TransformedEnv
 
-from maniskill_torchrl._repeat import check_repeat
-from maniskill_torchrl.envs.maniskill import ManiSkillEnv
+from maniskill_torchrl._internal.repeat import check_repeat
+from maniskill_torchrl.envs.engine_env import ManiSkillEnv
 from maniskill_torchrl.transforms.action_repeat import ActionRepeat
 from maniskill_torchrl.transforms.episode_metrics import EpisodeMetrics
 from maniskill_torchrl.transforms.terminations import IgnoreTerminations

@@ -9,7 +9,7 @@ own suite uses them, and so can yours (a task you registered with ``@register_en
   raw ManiSkill (and, for one env, the gym shim against ManiSkill's ``CPUGymWrapper``), with the
   same seeds and actions, resets included, and every output against the env's specs and device.
 
-The two assertions are written in ``maniskill_torchrl._assertions`` (no TorchRL or ManiSkill
+The two assertions are written in ``maniskill_torchrl._internal.assertions`` (no TorchRL or ManiSkill
 import); this module exports them beside the env check.
 """
 
@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 
-from maniskill_torchrl._assertions import assert_on_device, assert_tensordict_equal, leaf_keys, tensor_difference
+from maniskill_torchrl._internal.assertions import assert_on_device, assert_tensordict_equal, leaf_keys, tensor_difference
 
 __all__ = ["assert_on_device", "assert_tensordict_equal", "check_maniskill_env"]
 
@@ -72,7 +72,7 @@ def check_maniskill_env(
     from torchrl.envs.utils import check_env_specs
 
     from maniskill_torchrl.engines.cpu_vector import CPUVectorEnv
-    from maniskill_torchrl.envs.maniskill import ManiSkillEnv
+    from maniskill_torchrl.envs.engine_env import ManiSkillEnv
 
     where = f"check_maniskill_env({env_id!r}, num_envs={num_envs})"
     env = ManiSkillEnv(env_id, num_envs=num_envs, **maniskill_kwargs)
@@ -179,7 +179,7 @@ def _raw_step_tensordict(env: Any, obs: Any, info: Mapping, reward=None, termina
         entries.update(_as_tensordict(obs, n).to_dict())
     else:
         entries["observation"] = obs
-    for key, td_key in env._info_map:
+    for key, td_key in env.info_keys.items():
         entries[td_key] = info[key]
     if reward is not None:
         entries["reward"] = reward.to(torch.float32).reshape(n, 1)

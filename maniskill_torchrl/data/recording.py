@@ -31,20 +31,8 @@ def _episodes(done: torch.Tensor) -> list[tuple[int, int, int]]:
 
 
 def _max_episode_steps(wrapper: Any) -> int | None:
-    """The time limit of the wrapped ManiSkill env, as ``RecordEpisode`` finds it
-    (``find_max_episode_steps_value``: the ``gym.make`` argument, else the task's registered one)."""
-    from mani_skill.utils.gym_utils import find_max_episode_steps_value
-    from mani_skill.utils.registration import REGISTERED_ENVS
-
-    base = wrapper.base_env
-    kwargs = getattr(base, "maniskill_kwargs", None)
-    if kwargs is None:  # a gym env: its TimeLimitWrapper (or spec) knows
-        return find_max_episode_steps_value(wrapper._env)
-    # The batched CPU env: its sub-envs are made with these kwargs, in their own processes.
-    if kwargs.get("max_episode_steps") is not None:
-        return int(kwargs["max_episode_steps"])
-    registered = REGISTERED_ENVS.get(base.spec.id)
-    return None if registered is None else registered.max_episode_steps
+    """The time limit of the wrapped ManiSkill env, as ``RecordEpisode`` finds it."""
+    return wrapper.max_episode_steps
 
 
 def _write(group: Any, name: str, value: Any) -> None:
@@ -85,7 +73,7 @@ def save_trajectories(path: str | Path, rollout: TensorDictBase, env: Any) -> li
     """
     import h5py
 
-    from maniskill_torchrl.envs.maniskill import ManiSkillWrapper
+    from maniskill_torchrl.envs.engine_env import ManiSkillWrapper
 
     wrapper = env
     while not isinstance(wrapper, ManiSkillWrapper):
@@ -96,7 +84,7 @@ def save_trajectories(path: str | Path, rollout: TensorDictBase, env: Any) -> li
             )
         wrapper = inner
     base = wrapper.base_env
-    infos = {td_key for _, td_key in wrapper._info_map}
+    infos = set(wrapper.info_keys.values())
     obs_keys = [k for k in wrapper.observation_spec.keys() if k not in infos and k != "pixels"]
     steps = rollout if rollout.batch_dims > 1 else rollout.unsqueeze(0)
     steps = steps.reshape(-1, steps.shape[-1])  # [rows, T]

@@ -99,6 +99,22 @@ class ManiSkillWrapper(maniskill.ManiSkillWrapper):
         :class:`~maniskill_torchrl.CPUVectorEnv`."""
         return self._env.unwrapped
 
+    @property
+    def max_episode_steps(self) -> int | None:
+        """The time limit of the wrapped env, as ManiSkill's ``RecordEpisode`` finds it
+        (``find_max_episode_steps_value``: the ``gym.make`` argument, else the task's registered
+        one); a :class:`~maniskill_torchrl.CPUVectorEnv`'s from the kwargs of its sub-envs."""
+        from mani_skill.utils.gym_utils import find_max_episode_steps_value
+        from mani_skill.utils.registration import REGISTERED_ENVS
+
+        if self._workers is None:
+            return find_max_episode_steps_value(self._env)
+        kwargs = self._workers.maniskill_kwargs
+        if kwargs.get("max_episode_steps") is not None:
+            return int(kwargs["max_episode_steps"])
+        registered = REGISTERED_ENVS.get(self._workers.spec.id)
+        return None if registered is None else registered.max_episode_steps
+
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         if self._workers is not None:
             self._set_worker_repeat()
@@ -186,9 +202,8 @@ class ManiSkillEnv(maniskill.ManiSkillEnv, ManiSkillWrapper):
 
     def _check_kwargs(self, kwargs: dict) -> None:
         super()._check_kwargs(kwargs)
-        env_name, num_envs = kwargs["env_name"], kwargs["num_envs"]
-        # Before any process or sim starts: the batch size, then the assets.
-        self._checked_batch_size(self._asked_batch_size, num_envs)
+        env_name = kwargs["env_name"]
+        # Before any process or sim starts.
         maniskill_kwargs = {k: v for k, v in kwargs.items() if k not in ("env_name", "num_envs")}
         check_assets(env_name, maniskill_kwargs)
 

@@ -801,7 +801,7 @@ class ManiSkillWrapper(_EnvWrapper):
         if missing:
             raise ValueError(
                 f"info_keys {missing} are not reported by {self._env_name(base)}: "
-                f"its info keys are {sorted(infos)}."
+                f"available info keys are {sorted(infos)}."
             )
         return {k: infos[k] for k in asked}
 
@@ -1234,6 +1234,7 @@ class ManiSkillEnv(ManiSkillWrapper, metaclass=_ManiSkillEnvMeta):
             )
         if not isinstance(num_envs, int) or isinstance(num_envs, bool) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive int, got {num_envs!r}.")
+        self._checked_batch_size(self._asked_batch_size, num_envs)
 
     def _on_cpu_sim(self, num_envs: int, kwargs: dict) -> bool:
         """Whether ``gym.make`` gives the CPU sim: ManiSkill's ``"auto"`` is the CPU

@@ -211,7 +211,7 @@ def test_rollouts_saved_in_maniskill_format(tmp_path, num_envs):
             arts = {k: torch.from_numpy(v[:1]) for k, v in f["traj_1"]["env_states"]["articulations"].items()}
             start = torch.from_numpy(f["traj_1"]["obs"][0])
         if num_envs == 1:
-            td = env.reset(set_state=True, env_states={"actors": first, "articulations": arts})
+            td = env.reset(set_state=True, scene_state={"actors": first, "articulations": arts})
             assert torch.equal(td["observation"][0], start)
     finally:
         env.close()

@@ -643,7 +643,7 @@ def test_num_envs_on_cpu_sim(kwargs):
     class Built(Exception):
         pass
 
-    with mock.patch("maniskill_torchrl.envs.maniskill.CPUVectorEnv", side_effect=Built) as built:
+    with mock.patch("maniskill_torchrl.envs.engine_env.CPUVectorEnv", side_effect=Built) as built:
         with pytest.raises(Built):
             ManiSkillEnv("PickCube-v1", num_envs=2, **kwargs)
     (env_id, n), kw = built.call_args

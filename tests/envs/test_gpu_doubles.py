@@ -421,7 +421,11 @@ def test_reconfiguration_that_partial_resets_cannot_do_is_refused(gym_env, monke
     monkeypatch.setattr(base, "num_envs", 4)  # a GPU-sim batch
     monkeypatch.setattr(base, "reconfiguration_freq", 1)
     # The wrapper's checks of an env, on the options they read.
-    options = type("Options", (), {"frame_skip": 1, "_pixels_only": False, "_from_pixels": False})()
+    options = type(
+        "Options",
+        (),
+        {"frame_skip": 1, "_pixels_only": False, "_from_pixels": False, "_check_frame_skip": lambda self: None},
+    )()
     with pytest.raises(ValueError, match=r"reconfiguration_freq=1 with num_envs=4.*reconfiguration_freq=0"):
         ManiSkillWrapper._check_options(options, gym_env)
     # Envs that end together never reset partially: ManiSkillVectorEnv's own exception.

@@ -96,7 +96,7 @@ if __name__ == "__main__":
 
     from torchrl.envs import ParallelEnv as TorchRLParallelEnv
 
-    from maniskill_torchrl._mp import vulkan_loaded
+    from maniskill_torchrl._internal.mp import vulkan_loaded
 
     if mp.get_start_method(allow_none=True) == "fork" and vulkan_loaded():
         print("WOULD_HANG start method pinned to fork with a SAPIEN renderer in the parent", flush=True)

@@ -20,7 +20,7 @@ from torchrl.data import Bounded, Composite, Unbounded
 from torchrl.envs import EnvBase, SerialEnv, TransformedEnv
 from torchrl.envs import ParallelEnv as TorchRLParallelEnv
 
-from maniskill_torchrl import _mp
+from maniskill_torchrl._internal import mp as _mp
 from maniskill_torchrl.parallel import ManiSkillParallelEnv, set_batch_policy, usable_cores
 
 STEPS = 12
@@ -172,7 +172,7 @@ def test_vulkan_loaded_after_a_maniskill_env() -> None:
 def test_prefer_spawn_only_when_unset() -> None:
     code = (
         "import multiprocessing as mp\n"
-        "from maniskill_torchrl._mp import prefer_spawn\n"
+        "from maniskill_torchrl._internal.mp import prefer_spawn\n"
         "print(prefer_spawn(), end=' ')\n"
         "mp.set_start_method('forkserver', force=True)\n"
         "print(prefer_spawn())\n"

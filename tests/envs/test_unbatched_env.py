@@ -255,7 +255,7 @@ def test_bad_batch_size_raises_before_building(kwargs: dict, match: str, monkeyp
         raise AssertionError("an env was built before the batch size was checked")
 
     monkeypatch.setattr(gym, "make", no_env)
-    monkeypatch.setattr("maniskill_torchrl.envs.maniskill.CPUVectorEnv", no_env)
+    monkeypatch.setattr("maniskill_torchrl.envs.engine_env.CPUVectorEnv", no_env)
     with pytest.raises(ValueError, match=match):
         ManiSkillEnv("PickCube-v1", obs_mode="state", **kwargs)
 

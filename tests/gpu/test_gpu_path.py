@@ -153,7 +153,7 @@ def test_maniskill_vector_env_without_auto_reset():
 
 
 def test_partial_reset_to_saved_states():
-    """env.get_state() then a masked env.reset(td, set_state=True, env_states=...): the masked envs
+    """env.get_state() then a masked env.reset(td, set_state=True, scene_state=...): the masked envs
     get their saved observation back, the others keep theirs (ManiSkill's reset_to_env_states with
     the rows of the envs being reset)."""
     env = ManiSkillEnv("MS-CartpoleBalance-v1", num_envs=NUM_ENVS, obs_mode="state", sim_backend=SIM_BACKEND)
@@ -166,7 +166,7 @@ def test_partial_reset_to_saved_states():
             td = env.step(td.set("action", a))["next"]
         now = td["observation"].clone()
         mask = (torch.arange(NUM_ENVS, device=env.device) % 2 == 0).unsqueeze(-1)
-        back = env.reset(td.clone().set("_reset", mask), set_state=True, env_states=saved)
+        back = env.reset(td.clone().set("_reset", mask), set_state=True, scene_state=saved)
         m = mask.squeeze(-1)
         assert torch.equal(back["observation"][m], start["observation"][m])
         assert torch.equal(back["observation"][~m], now[~m])

@@ -176,7 +176,7 @@ def test_missing_assets_raise_a_clear_error_without_a_prompt(env_id, num_envs, n
 
 def test_manikill_prompt_becomes_an_error(monkeypatch):
     """An asset ManiSkill did not declare for the task: its (y|n) prompt raises instead of reading stdin."""
-    import maniskill_torchrl.envs.maniskill as maniskill_env_module
+    import maniskill_torchrl.envs.engine_env as maniskill_env_module
 
     monkeypatch.setattr(maniskill_env_module, "check_assets", lambda *args, **kwargs: None)
     monkeypatch.setattr("sys.stdin", io.StringIO(""))  # an answer would be read from here

@@ -1,5 +1,5 @@
 """Resetting to saved ManiSkill states: ``env.get_state()`` and ``env.reset(td, set_state=True,
-env_states=...)`` / ``env.reset_to_state(...)`` (TorchRL's deterministic-reset convention, as
+scene_state=...)`` / ``env.reset_to_state(...)`` (TorchRL's deterministic-reset convention, as
 IsaacLabWrapper's), on the single env, the batched CPU env (partial resets too) and an unbatched
 env; the oracles are the recording itself and raw ManiSkill's ``reset_to_env_states``.
 
@@ -74,7 +74,7 @@ def test_partial_reset_to_saved_states():
         # Only env 0 goes back; env 1's row of the saved states is not read.
         mask = torch.tensor([[True], [False]])
         saved[1] = saved[1].apply(torch.zeros_like)
-        td = env.reset(now.clone().set("_reset", mask), set_state=True, env_states=saved)
+        td = env.reset(now.clone().set("_reset", mask), set_state=True, scene_state=saved)
         assert torch.equal(td["observation"][0], start["observation"][0])
         assert torch.equal(td["observation"][1], now["observation"][1])
         assert td["elapsed_steps"].tolist() == [0, STEPS]
@@ -142,7 +142,7 @@ def test_unbatched_env_and_transformed_env():
         state = env.base_env.get_state()
         assert state.batch_size == torch.Size([])
         env.rollout(4)
-        td = env.reset(set_state=True, env_states=state)  # the transforms reset too
+        td = env.reset(set_state=True, scene_state=state)  # the transforms reset too
         assert torch.equal(td["observation"], start["observation"])
         assert td["episode", "episode_len"].item() == 0
     finally:
@@ -156,7 +156,7 @@ def test_state_reset_arguments_are_checked():
         with pytest.raises(ValueError, match=r"set_state=True and env_states"):
             env.reset(set_state=True)
         with pytest.raises(ValueError, match=r"set_state=True and env_states"):
-            env.reset(env_states=env.get_state())
+            env.reset(scene_state=env.get_state())
     finally:
         env.close()
 
