@@ -70,7 +70,7 @@ def _worker(
     import mani_skill.envs  # noqa: F401
     import torch
 
-    from maniskill_torchrl._maniskill import default_render_backend
+    from maniskill_torchrl._internal.rendering import default_render_backend
 
     torch.set_num_threads(1)
     shm = shared_memory.SharedMemory(name=shm_name)

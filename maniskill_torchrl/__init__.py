@@ -36,11 +36,11 @@ def _require_maniskill() -> None:
 
 _require_maniskill()
 
-from maniskill_torchrl._mp import prefer_spawn  # noqa: E402
+from maniskill_torchrl._internal.mp import prefer_spawn  # noqa: E402
 
 # As ``import torchrl`` does: without it, the first process any library starts (gymnasium's
 # AsyncVectorEnv, say) pins "fork", and a TorchRL ParallelEnv built later in this process forks
-# a parent holding a SAPIEN renderer and hangs (see maniskill_torchrl/_mp.py).
+# a parent holding a SAPIEN renderer and hangs (see maniskill_torchrl/_internal/mp.py).
 prefer_spawn()
 
 _EXPORTS = {
@@ -52,15 +52,15 @@ _EXPORTS = {
     "EnvStates": "maniskill_torchrl.transforms",
     "EpisodeMetrics": "maniskill_torchrl.transforms",
     "IgnoreTerminations": "maniskill_torchrl.transforms",
-    "RenderDeviceError": "maniskill_torchrl._maniskill",
+    "RenderDeviceError": "maniskill_torchrl.errors",
 }
 
 __all__ = [*_EXPORTS, "__version__"]
 
 if TYPE_CHECKING:
-    from maniskill_torchrl._maniskill import RenderDeviceError
     from maniskill_torchrl.engines.cpu_vector import CPUVectorEnv
     from maniskill_torchrl.envs import ManiSkillEnv, ManiSkillWrapper
+    from maniskill_torchrl.errors import RenderDeviceError
     from maniskill_torchrl.transforms import (
         ActionRepeat,
         CPUUnbatch,

@@ -3,8 +3,8 @@
 TorchRL 0.14 and tensordict 0.14 keep these out of their public API; each is used
 for speed (the per-step path of the CPU sim counts microseconds) or because the
 public class is the only way in. When an upgrade renames one, this module is the
-one to change. The tensordict names are imported eagerly (the gym shim uses them
-and must not import TorchRL); the TorchRL ones on first use.
+one to change. The tensordict names are imported eagerly; the gym shim uses them and
+must not import TorchRL, so the TorchRL ones are reached through the objects passed in.
 
 - :func:`new_tensordict`: ``TensorDict._new_unsafe``, a TensorDict from a dict of
   tensors already shaped for the batch, without per-entry validation.
@@ -15,8 +15,6 @@ and must not import TorchRL); the TorchRL ones on first use.
   bookkeeping (``ActionRepeat``'s inner steps).
 - :func:`complete_done`: ``EnvBase._complete_done``, fills missing done entries
   as ``TransformedEnv`` does.
-- ``EnvWrapper`` (``torchrl.envs.common._EnvWrapper``) and ``classproperty``
-  (``torchrl.envs.utils._classproperty``), for :class:`~maniskill_torchrl.ManiSkillWrapper`.
 - :func:`done_flags`, :func:`uses_buffers`, :func:`workers`, :func:`start_method`,
   :func:`shutdown_workers`: the private attributes of
   ``torchrl.envs.ParallelEnv`` that :mod:`maniskill_torchrl.parallel` reads (its
@@ -31,8 +29,6 @@ from typing import Any
 from tensordict import TensorDict, TensorDictBase
 
 __all__ = [
-    "EnvWrapper",
-    "classproperty",
     "complete_done",
     "done_flags",
     "entries",
@@ -95,15 +91,3 @@ def start_method(env: Any) -> str | None:
 
 def shutdown_workers(env: Any) -> None:
     env._shutdown_workers()
-
-
-def __getattr__(name: str) -> Any:
-    # Imported on first use: ``import maniskill_torchrl.wrappers`` must not import TorchRL.
-    if name == "EnvWrapper":
-        from torchrl.envs.common import _EnvWrapper as value
-    elif name == "classproperty":
-        from torchrl.envs.utils import _classproperty as value
-    else:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    globals()[name] = value
-    return value

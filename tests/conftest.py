@@ -66,11 +66,11 @@ def _keep_sapien_renderer():
     yield
     if _RENDERER:
         return
-    from maniskill_torchrl._mp import vulkan_loaded
+    from maniskill_torchrl._internal.mp import vulkan_loaded
 
     if not vulkan_loaded():
         return
-    from maniskill_torchrl._maniskill import _no_cuda_render_device
+    from maniskill_torchrl._internal.rendering import _no_cuda_render_device
 
     # Asked of SAPIEN, as ManiSkill's default render backend asks: a machine whose SAPIEN renders
     # on CUDA (even where torch sees no CUDA) must not hold a CPU renderer.

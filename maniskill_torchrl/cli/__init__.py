@@ -57,7 +57,7 @@ def make_demo_env(env_id: str, num_envs: int, repeat: int, env_kwargs: dict[str,
 
 def run_demo(args: argparse.Namespace) -> int:
     """Runs ``maniskill-torchrl demo`` with validated flags; returns the exit code."""
-    from maniskill_torchrl._maniskill import quiet_maniskill
+    from maniskill_torchrl._internal.rendering import quiet_maniskill
 
     quiet_maniskill()
     policy_name = args.policy

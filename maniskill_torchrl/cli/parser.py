@@ -107,7 +107,7 @@ def validate_demo_args(args: argparse.Namespace) -> None:
             f"--policy scripted is a controller for {DEFAULT_ENV} only (got --env-id {args.env_id}); "
             "use --policy random"
         )
-    from maniskill_torchrl._maniskill import registered_env_ids, similar_env_ids
+    from maniskill_torchrl._internal.assets import registered_env_ids, similar_env_ids
 
     registered = registered_env_ids()
     if args.env_id not in registered:

@@ -9,7 +9,7 @@ the picklable factory that builds the env in the worker (and the parent's own su
 writes its row the same way).
 
 Like ``cpu_vector.py``, this module imports neither TorchRL nor the rest of the library beyond
-``_maniskill`` and the pool's two step bytes (``_pool.py``) when it loads: the workers import it,
+``_internal``'s ManiSkill helpers and the pool's two step bytes (``_pool.py``) when it loads: the workers import it,
 and start faster without them. A worker told to repeat actions imports ``_repeat`` (the gym shim's
 repeat step) then.
 """
@@ -28,14 +28,9 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from maniskill_torchrl._maniskill import (
-    default_render_backend,
-    make_maniskill,
-    maniskill_base_env,
-    no_asset_prompt,
-    render_frame_shape,
-    wrapper_attr,
-)
+from maniskill_torchrl._internal.assets import no_asset_prompt
+from maniskill_torchrl._internal.rendering import default_render_backend, make_maniskill, render_frame_shape
+from maniskill_torchrl._internal.sim import maniskill_base_env, wrapper_attr
 from maniskill_torchrl.engines._pool import DONE, STEP
 
 __all__ = [
@@ -66,7 +61,7 @@ def _numpy_dtype(dtype: torch.dtype) -> np.dtype:
 def _info_space(infos: Mapping[str, Any]) -> gym.spaces.Dict:
     """Spaces for the per-env tensor infos of a one-env ManiSkill info dict (``[1, ...]`` tensors).
 
-    The same entries as :func:`maniskill_torchrl.envs._specs.info_spec_from_infos` keeps:
+    The same entries as the adapter (``maniskill_torchrl.envs.maniskill``) declares:
     python values such as ``reconfigure`` are per-call metadata and are left out.
     """
     spaces: dict[str, gym.Space] = {}
@@ -160,7 +155,7 @@ class StepInObservation(gym.Wrapper):
             self._stepper = self.env
         else:
             # The masked merge (tensordict, no TorchRL) is imported only by workers that repeat.
-            from maniskill_torchrl._repeat import repeat_step
+            from maniskill_torchrl._internal.repeat import repeat_step
 
             # Each inner step's reward in float32 before the sum, as ActionRepeat sums the
             # parent env's float32 rewards: one rule for bool and float64 tasks on both paths.

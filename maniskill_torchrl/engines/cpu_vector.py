@@ -16,7 +16,7 @@ sub-env equals a lone ManiSkill env given the same seed and actions, bit for bit
 
 The worker side (the gym wrapper each worker runs, its factory, its loop) is in ``_worker.py``;
 the processes and pipes seen from here in ``_pool.py``. None of these modules imports TorchRL or
-the rest of the library beyond ``_maniskill``: the workers import them, and start faster
+the rest of the library beyond ``_internal``: the workers import them, and start faster
 without them.
 
 The env core (:class:`~maniskill_torchrl.ManiSkillWrapper`) never imports this module: it reads
@@ -36,7 +36,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from maniskill_torchrl._maniskill import check_assets
+from maniskill_torchrl._internal.assets import check_assets
 from maniskill_torchrl.engines._pool import WorkerFailure, WorkerPool
 from maniskill_torchrl.engines._shared import Layout, SharedBlock
 from maniskill_torchrl.engines._trace import COLLECT_END, HERE_END, SEND, StepTrace, summarize
@@ -334,7 +334,7 @@ class CPUVectorEnv:
             TypeError: ``repeat`` is not an int.
             ValueError: ``repeat < 1``.
         """
-        from maniskill_torchrl._repeat import check_repeat  # tensordict: kept out of module import
+        from maniskill_torchrl._internal.repeat import check_repeat  # tensordict: kept out of module import
 
         repeat = check_repeat(repeat)
         if repeat == self._repeat:

@@ -22,13 +22,8 @@ from typing import Any
 import torch
 from tensordict import TensorDictBase
 
-from maniskill_torchrl._maniskill import (
-    check_assets,
-    default_render_backend,
-    no_asset_prompt,
-    remember_render_device,
-    render_device_errors,
-)
+from maniskill_torchrl._internal.assets import check_assets, no_asset_prompt
+from maniskill_torchrl._internal.rendering import default_render_backend, remember_render_device, render_device_errors
 from maniskill_torchrl.engines.cpu_vector import CPUVectorEnv
 from maniskill_torchrl.envs import maniskill
 

@@ -8,7 +8,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from maniskill_torchrl._maniskill import maniskill_base_env
+from maniskill_torchrl._internal.sim import maniskill_base_env
 
 __all__ = ["np_unbatch", "require_maniskill_env"]
 

@@ -10,8 +10,8 @@ import warnings
 
 import pytest
 
-from maniskill_torchrl import _maniskill
-from maniskill_torchrl._maniskill import default_render_backend
+from maniskill_torchrl._internal import rendering as _maniskill
+from maniskill_torchrl._internal.rendering import default_render_backend
 
 
 def _no_warnings(recwarn) -> None:

@@ -20,12 +20,8 @@ import sapien
 import torch
 
 from maniskill_torchrl import ManiSkillEnv
-from maniskill_torchrl._maniskill import (
-    RenderDeviceError,
-    _device_name,
-    render_device_message,
-    render_devices_in_use,
-)
+from maniskill_torchrl._internal.rendering import _device_name, render_device_message, render_devices_in_use
+from maniskill_torchrl.errors import RenderDeviceError
 from support.helpers import ROOT, TIMEOUT_S
 
 KW = dict(obs_mode="state", max_episode_steps=5)
@@ -116,9 +112,9 @@ REAL_MIX = """
 import gc
 import torch
 from maniskill_torchrl import ManiSkillEnv
-from maniskill_torchrl._maniskill import RenderDeviceError
+from maniskill_torchrl.errors import RenderDeviceError
 
-from maniskill_torchrl._maniskill import _no_cuda_render_device
+from maniskill_torchrl._internal.rendering import _no_cuda_render_device
 
 if _no_cuda_render_device():
     raise SystemExit("NO SAPIEN CUDA DEVICE")

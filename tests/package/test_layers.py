@@ -32,17 +32,7 @@ MAX_CHAIN = 7
 LAYERS: list[tuple[str, tuple[str, ...]]] = [
     (
         "helpers",
-        (
-            "_private",
-            "_mp",
-            "_maniskill",
-            "_repeat",
-            "_masked_merge",
-            "_host_gather",
-            "_numpy_sum",
-            "_episode_stats",
-            "_assertions",
-        ),
+        ("errors", "_internal", "_private", "_host_gather"),
     ),
     ("engines", ("engines",)),
     ("envs", ("envs", "parallel")),
@@ -149,7 +139,7 @@ def test_the_checks_fail_on_a_bad_graph(monkeypatch: pytest.MonkeyPatch) -> None
     """The same two checks, on a made-up graph: a helper importing the envs is upward, and a
     chain of eight modules is too long."""
     chain = [f"{PKG}.cli", f"{PKG}.pipeline", f"{PKG}.transforms.action_repeat", f"{PKG}.envs.maniskill"]
-    chain += [f"{PKG}.engines.cpu_vector", f"{PKG}.engines._worker", f"{PKG}._repeat", f"{PKG}._private"]
+    chain += [f"{PKG}.engines.cpu_vector", f"{PKG}.engines._worker", f"{PKG}._internal.repeat", f"{PKG}._private"]
     graph = dict(zip(chain, ({n} for n in chain[1:]))) | {f"{PKG}._private": {f"{PKG}.envs.maniskill"}}
     monkeypatch.setattr(sys.modules[__name__], "imports", lambda m: frozenset(graph.get(m, ())))
     assert upward(f"{PKG}._private") == [f"{PKG}.envs.maniskill"]
@@ -177,17 +167,29 @@ def _names_used(node: ast.AST) -> set[str]:
     return {n.id for n in ast.walk(node) if isinstance(n, ast.Name)}
 
 
-def test_only_the_factory_picks_the_engine() -> None:
-    """The adapter's one file holds both classes, as TorchRL's do: ``ManiSkillEnv`` (the factory)
-    picks the CPU engine; ``ManiSkillWrapper`` never names it (it reads the capabilities an
-    engine declares), and nothing else of the file does."""
+def test_the_adapter_is_self_contained() -> None:
+    """``envs/maniskill.py`` is the file bound for TorchRL's tree: at module level it imports
+    torch, tensordict, torchrl, numpy and the standard library only; it names no module of this
+    project anywhere, nor the CPU engine (``engine_env.py`` adds that on top)."""
+    import sys
+
     tree = ast.parse(ADAPTER.read_text())
-    classes = {n.name: n for n in tree.body if isinstance(n, ast.ClassDef)}
-    assert {"ManiSkillWrapper", "ManiSkillEnv"} <= set(classes)
-    assert "CPUVectorEnv" in _names_used(classes["ManiSkillEnv"])
-    elsewhere = [n for n in tree.body if not isinstance(n, (ast.ClassDef, ast.ImportFrom, ast.Import))]
-    assert "CPUVectorEnv" not in _names_used(classes["ManiSkillWrapper"])
-    assert all("CPUVectorEnv" not in _names_used(n) for n in elsewhere)
+    top = set()
+    for node in tree.body:
+        if isinstance(node, ast.Import):
+            top |= {a.name.split(".")[0] for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.level == 0:
+            top.add(node.module.split(".")[0])
+    allowed = {"torch", "tensordict", "torchrl", "numpy", "__future__"} | set(sys.stdlib_module_names)
+    assert top <= allowed, f"module-level imports beyond torch/tensordict/torchrl/numpy: {top - allowed}"
+    every = {
+        (a.name if isinstance(n, ast.Import) else n.module or "")
+        for n in ast.walk(tree)
+        if isinstance(n, (ast.Import, ast.ImportFrom))
+        for a in n.names
+    }
+    assert not [m for m in every if m.startswith(PKG)], every
+    assert "CPUVectorEnv" not in _names_used(tree)
 
 
 def test_nothing_shadows_a_torchrl_name() -> None:
@@ -226,4 +228,3 @@ def test_the_engine_declares_what_the_core_reads() -> None:
         assert not hasattr(BaseEnv, name), name
     for name in ("render_frame_shape", "set_repeat", "repeat"):
         assert hasattr(CPUVectorEnv, name) and not hasattr(BaseEnv, name), name
-

@@ -13,7 +13,7 @@ from __future__ import annotations
 import pytest
 
 from maniskill_torchrl import ManiSkillEnv
-from maniskill_torchrl._maniskill import check_assets
+from maniskill_torchrl._internal.assets import check_assets
 from maniskill_torchrl.testing import check_maniskill_env
 
 STEPS = 20

@@ -233,7 +233,7 @@ def alone_where_cuda(request: Any) -> bool:
 
     Call it first, before any fixture or env of the test makes a ManiSkill env (it asks SAPIEN
     for a CUDA device, as the library does before its first env: that loads Vulkan)."""
-    from maniskill_torchrl._maniskill import _no_cuda_render_device
+    from maniskill_torchrl._internal.rendering import _no_cuda_render_device
 
     if os.environ.get(OWN_PROCESS) == "1" or _no_cuda_render_device():
         return False
