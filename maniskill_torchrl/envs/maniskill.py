@@ -496,11 +496,6 @@ class ManiSkillWrapper(_EnvWrapper):
         allow_done_after_reset (bool, optional): passed to
             :class:`~torchrl.envs.EnvBase`. Defaults to ``False``.
 
-    Attributes:
-        base_env: the ManiSkill ``BaseEnv``.
-        gpu_sim_enabled: whether the env runs on the GPU sim.
-        info_keys: ``{info key: tensordict key}`` of the declared infos.
-
     Examples:
         >>> import gymnasium as gym
         >>> import mani_skill.envs  # registers the tasks
@@ -1163,7 +1158,7 @@ class ManiSkillEnv(ManiSkillWrapper, metaclass=_ManiSkillEnvMeta):
 
     Args:
         env_name (str): a registered task, e.g. ``"PickCube-v1"``
-            (:attr:`available_envs` lists them).
+            (``ManiSkillEnv.available_envs`` lists them).
 
     Keyword Args:
         num_envs (int, optional): envs in the ManiSkill env, the batch size. On the
