@@ -154,6 +154,15 @@ class ManiSkillWrapper(maniskill.ManiSkillWrapper):
         gather = self._gather
         return None if gather is None else gather.host_value(tensor)
 
+    def __reduce__(self) -> Any:
+        # A live SAPIEN sim (and worker processes) cannot cross a pickle; what makes one can.
+        raise TypeError(
+            f"{type(self).__name__} holds a live ManiSkill sim and cannot be pickled. Pickle what makes it "
+            "instead: functools.partial(ManiSkillEnv, 'PickCube-v1', ...), torchrl.envs.EnvCreator(make_env), "
+            "or functools.partial(maniskill_torchrl.pipeline.make_env, 'PickCube-v1', ...) for collectors, "
+            "ParallelEnv and Ray."
+        )
+
     def close(self, *, raise_if_closed: bool = True) -> None:
         self._workers = None
         super().close(raise_if_closed=raise_if_closed)

@@ -701,3 +701,21 @@ def test_physx_gpu_download_failure_says_what_to_do(monkeypatch):
     with pytest.raises(RuntimeError, match=r"libPhysXGpu_64\.so.*Failed to resolve.*sim_backend='cpu'") as info:
         enable_physx_gpu()
     assert isinstance(info.value.__cause__, requests.exceptions.ConnectionError)
+
+
+def test_pickling_says_what_to_pickle_instead():
+    """An env holds a live sim: pickling it (a collector given an instance, deepcopy) names the
+    factories that pickle, instead of an error about a local lambda."""
+    import copy
+    import functools
+    import pickle
+
+    env = ManiSkillEnv("PickCube-v1", obs_mode="state")
+    try:
+        for dump in (pickle.dumps, copy.deepcopy):
+            with pytest.raises(TypeError, match=r"cannot be pickled.*functools.partial\(ManiSkillEnv"):
+                dump(env)
+        make = pickle.loads(pickle.dumps(functools.partial(ManiSkillEnv, "PickCube-v1", obs_mode="state")))
+        assert make.func is ManiSkillEnv
+    finally:
+        env.close()
