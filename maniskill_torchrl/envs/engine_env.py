@@ -89,12 +89,6 @@ class ManiSkillWrapper(maniskill.ManiSkillWrapper):
         return env
 
     @property
-    def base_env(self) -> Any:
-        """The ManiSkill ``BaseEnv`` (``env.unwrapped``), or the wrapped
-        :class:`~maniskill_torchrl.CPUVectorEnv`."""
-        return self._env.unwrapped
-
-    @property
     def max_episode_steps(self) -> int | None:
         """The time limit of the wrapped env, as ManiSkill's ``RecordEpisode`` finds it
         (``find_max_episode_steps_value``: the ``gym.make`` argument, else the task's registered

@@ -687,7 +687,8 @@ class ManiSkillWrapper(_EnvWrapper):
 
     @property
     def base_env(self) -> Any:
-        """The ManiSkill ``BaseEnv`` (``env.unwrapped``)."""
+        """The env under the gym wrappers (``env.unwrapped``): the ManiSkill
+        ``BaseEnv``."""
         return self._env.unwrapped
 
     @property
