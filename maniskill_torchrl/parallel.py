@@ -28,7 +28,7 @@ backend="process", num_collectors=N)``.
    method says, unless ``mp_start_method`` is given. Python pins that global to ``"fork"`` the
    first time any process starts (gymnasium's ``AsyncVectorEnv(context="forkserver")``
    does), and ManiSkill workers forked from a parent that has built a ManiSkill env hang
-   forever (see ``maniskill_torchrl._mp``).
+   forever (see ``maniskill_torchrl._internal.mp``).
 4. **Forking a parent that holds a SAPIEN renderer fails at once** with a ``RuntimeError``
    that says what to do, instead of hanging (``mp_start_method="fork"`` after a ManiSkill env
    was built in this process).
@@ -61,7 +61,7 @@ from typing import Any, Literal
 from torchrl.envs import ParallelEnv as _TorchRLParallelEnv
 
 from maniskill_torchrl import _private
-from maniskill_torchrl._mp import check_start_method
+from maniskill_torchrl._internal.mp import check_start_method
 
 __all__ = ["ManiSkillParallelEnv", "set_batch_policy", "usable_cores"]
 
@@ -223,4 +223,3 @@ class ManiSkillParallelEnv(_TorchRLParallelEnv):
                 except Exception:  # noqa: BLE001 - the dead worker is the error to report
                     pass
                 raise RuntimeError(f"Cannot proceed, worker {i} dead (exit code {worker.exitcode}).")
-

@@ -22,7 +22,12 @@ import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 
-from maniskill_torchrl._internal.assertions import assert_on_device, assert_tensordict_equal, leaf_keys, tensor_difference
+from maniskill_torchrl._internal.assertions import (
+    assert_on_device,
+    assert_tensordict_equal,
+    leaf_keys,
+    tensor_difference,
+)
 
 __all__ = ["assert_on_device", "assert_tensordict_equal", "check_maniskill_env"]
 

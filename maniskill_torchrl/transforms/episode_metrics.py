@@ -7,7 +7,7 @@ from tensordict import TensorDictBase
 from torchrl.data import Categorical, Composite, TensorSpec, Unbounded
 from torchrl.envs import EnvBase, Transform, TransformedEnv
 
-from maniskill_torchrl._episode_stats import SUMMATIONS, EpisodeField, EpisodeStats, episode_fields
+from maniskill_torchrl._internal.episode_stats import SUMMATIONS, EpisodeField, EpisodeStats, episode_fields
 
 __all__ = ["EpisodeMetrics"]
 

@@ -6,7 +6,7 @@
   repeat on batched torch data.
 
 Both give ManiSkill's outputs bit for bit, on the same core as the TorchRL
-transforms (``maniskill_torchrl._masked_merge``, ``maniskill_torchrl._episode_stats``).
+transforms (``maniskill_torchrl._internal.repeat``, ``maniskill_torchrl._internal.episode_stats``).
 """
 
 from maniskill_torchrl.wrappers.action_repeat import ActionRepeatWrapper

@@ -2,8 +2,8 @@
 
 Change ``from mani_skill.utils.wrappers import ActionRepeatWrapper`` to
 ``from maniskill_torchrl.wrappers import ActionRepeatWrapper``; the batched torch
-outputs stay the same. Each step is ``maniskill_torchrl._repeat.repeat_step``:
-the inner steps merged by :func:`maniskill_torchrl._repeat.keep_where`, the rule
+outputs stay the same. Each step is ``maniskill_torchrl._internal.repeat.repeat_step``:
+the inner steps merged by :func:`maniskill_torchrl._internal.repeat.keep_where`, the rule
 of the TorchRL ``ActionRepeat`` transform, directly on ManiSkill's dicts (the CPU
 engine's workers repeat actions with the same function).
 """
@@ -20,7 +20,7 @@ from mani_skill.utils.wrappers.action_repeat import (
 )
 from mani_skill.utils.wrappers.gymnasium import CPUGymWrapper as _ManiSkillCPUGymWrapper
 
-from maniskill_torchrl._repeat import check_repeat, repeat_step
+from maniskill_torchrl._internal.repeat import check_repeat, repeat_step
 from maniskill_torchrl.wrappers._common import require_maniskill_env
 
 __all__ = ["ActionRepeatWrapper"]

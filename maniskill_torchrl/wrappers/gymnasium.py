@@ -3,7 +3,7 @@
 Change ``from mani_skill.utils.wrappers import CPUGymWrapper`` to
 ``from maniskill_torchrl.wrappers import CPUGymWrapper``; observations, rewards,
 flags, infos and ``info["episode"]`` stay the same, value for value and type for
-type. The episode metrics come from :class:`maniskill_torchrl._episode_stats.EpisodeStats`,
+type. The episode metrics come from :class:`maniskill_torchrl._internal.episode_stats.EpisodeStats`,
 the same code as the TorchRL ``EpisodeMetrics`` transform.
 """
 
@@ -19,7 +19,7 @@ from mani_skill.utils.common import to_numpy
 from mani_skill.utils.wrappers.gymnasium import CPUGymWrapper as _ManiSkillCPUGymWrapper
 from tensordict import TensorDict
 
-from maniskill_torchrl._episode_stats import EpisodeField, EpisodeStats
+from maniskill_torchrl._internal.episode_stats import EpisodeField, EpisodeStats
 from maniskill_torchrl.wrappers._common import np_unbatch, require_maniskill_env
 
 __all__ = ["CPUGymWrapper"]

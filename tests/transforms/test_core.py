@@ -15,8 +15,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from tensordict import TensorDict
 
-from maniskill_torchrl._episode_stats import EpisodeStats
-from maniskill_torchrl._masked_merge import any_done, merge_step
+from maniskill_torchrl._internal.episode_stats import EpisodeStats
+from maniskill_torchrl.transforms.action_repeat import any_done, merge_step
 from support.helpers import bits
 
 

@@ -16,7 +16,7 @@ import torch
 from torchrl.envs import Compose, RewardSum, StepCounter, TransformedEnv
 
 from maniskill_torchrl import CPUUnbatch, EpisodeMetrics, ManiSkillEnv
-from maniskill_torchrl._episode_stats import EpisodeStats
+from maniskill_torchrl._internal.episode_stats import EpisodeStats
 from support.helpers import bits, close_envs, random_actions
 
 

@@ -10,11 +10,10 @@ import pickle
 import pytest
 import torch
 
-import maniskill_torchrl._assertions as assertions_module
-import maniskill_torchrl._episode_stats as episode_stats_module
-import maniskill_torchrl._masked_merge as masked_merge_module
-import maniskill_torchrl._numpy_sum as numpy_sum_module
+import maniskill_torchrl._internal.assertions as assertions_module
+import maniskill_torchrl._internal.episode_stats as episode_stats_module
 import maniskill_torchrl.pipeline as pipeline_module
+import maniskill_torchrl.transforms.action_repeat as action_repeat_module
 import maniskill_torchrl.transforms.env_states as env_states_module
 from maniskill_torchrl import ActionRepeat, EpisodeMetrics, IgnoreTerminations, ManiSkillEnv
 from maniskill_torchrl.pipeline import make_env
@@ -66,9 +65,8 @@ def test_partial_pickles_for_worker_processes():
     "module",
     [
         pipeline_module,
-        masked_merge_module,
+        action_repeat_module,
         episode_stats_module,
-        numpy_sum_module,
         assertions_module,
         env_states_module,
     ],

@@ -22,7 +22,7 @@ from mani_skill.utils.wrappers import RecordEpisode
 
 import maniskill_torchrl.wrappers.action_repeat as action_repeat_module
 import maniskill_torchrl.wrappers.gymnasium as gymnasium_module
-from maniskill_torchrl._episode_stats import EpisodeStats
+from maniskill_torchrl._internal.episode_stats import EpisodeStats
 from maniskill_torchrl.wrappers import ActionRepeatWrapper, CPUGymWrapper
 from maniskill_torchrl.wrappers._common import np_unbatch
 from support.helpers import assert_same, close_envs, make_gym_env, random_actions
