@@ -35,6 +35,18 @@ triton, nvidia-*, cuda-* (preinstalled: torch 2.11.0+cu130). Slimmed: mani_skill
 """
 
 
+# PEP 600 names (manylinux_2_28_x86_64) and the legacy alias manylinux2014 (= 2_17): pip reads any other
+# spelling as an unknown platform that no wheel has.
+PLATFORMS = ("manylinux_2_28_x86_64", "manylinux_2_27_x86_64", "manylinux_2_17_x86_64", "manylinux2014_x86_64")
+
+
+def download_command(folder: Path, pins: list[str]) -> list[str]:
+    """The ``pip download`` of ``pins`` as cp312 wheels for the accelerator machine's platforms."""
+    plat = [a for p in PLATFORMS for a in ("--platform", p)]
+    return [sys.executable, "-m", "pip", "download", "-q", "--no-deps", "--only-binary=:all:", "-d", str(folder),
+            "--python-version", "3.12", "--implementation", "cp", *plat, *pins]  # fmt: skip
+
+
 def wheels(cache: Path) -> list[Path]:
     """The pinned wheels (downloaded once; mani_skill and sapien slimmed) and the project's wheel."""
     want, have = {re.sub(r"[-_.]+", "_", p.split("==")[0]): p.split("==")[1] for p in PINS}, {}
@@ -43,10 +55,7 @@ def wheels(cache: Path) -> list[Path]:
             have[f.name.split("-")[0].lower()] = f
     if missing := [f"{n}=={v}" for n, v in want.items() if n not in have]:
         print(f"gpu-kit: downloading {len(missing)} cp312 wheels into {cache / 'wheels'}", flush=True)
-        plat = [a for p in ("2_28", "2_27", "2_17", "2014") for a in ("--platform", f"manylinux{p}_x86_64")]
-        subprocess.run([sys.executable, "-m", "pip", "download", "-q", "--no-deps", "--only-binary=:all:", "-d",
-                        str(cache / "wheels"), "--python-version", "3.12", "--implementation", "cp", *plat, *missing],
-                       check=True)  # fmt: skip
+        subprocess.run(download_command(cache / "wheels", missing), check=True)
         return wheels(cache)
     for name in ("mani_skill", "sapien"):  # slimmed again when the wheel or the rules changed
         src, have[name] = have[name], cache / "slim" / have[name].name
