@@ -16,7 +16,7 @@ help:
 	@echo "Targets:"
 	@echo "  make setup   create .venv and install the package (+ test, demo, distributed, docs, maniskill extras); checks Vulkan"
 	@echo "  make test    run the test suite (PYTEST_ARGS=... passed to pytest)"
-	@echo "  make test-cuda-double  the library on a CUDA machine, under the CUDA double (tests/cuda/test_cuda_machine.py, ~1.5 min)"
+	@echo "  make test-cuda-double  the library on a CUDA machine, under the CUDA double (tests/gpu/test_cuda_machine.py, ~1.5 min)"
 	@echo "  make test-registry  every task of ManiSkill's registry whose assets are here (tests/registry)"
 	@echo "               MANISKILL=nightly: against mani-skill-nightly, in .venv-nightly (= make test-nightly)"
 	@echo "  make lint    ruff check + ruff format --check"
@@ -32,14 +32,14 @@ help:
 setup:
 	@MANISKILL=$(MANISKILL) bash scripts/setup.sh
 
-# The CUDA-double cases run in a subprocess of their own (tests/cuda/test_cuda_machine.py, the suite's
+# The CUDA-double cases run in a subprocess of their own (tests/gpu/test_cuda_machine.py, the suite's
 # slowest file): their own target, so that `make test` stays well inside 10 minutes on 2 cores.
 test: setup lint
 	$(VENV)/bin/python -m pytest -q --durations=15 tests --ignore=tests/registry --ignore=tests/docs \
-		--ignore=tests/cuda/test_cuda_machine.py $(PYTEST_ARGS)
+		--ignore=tests/gpu/test_cuda_machine.py $(PYTEST_ARGS)
 
 test-cuda-double: setup
-	$(VENV)/bin/python -m pytest -q --durations=5 tests/cuda/test_cuda_machine.py $(PYTEST_ARGS)
+	$(VENV)/bin/python -m pytest -q --durations=5 tests/gpu/test_cuda_machine.py $(PYTEST_ARGS)
 
 test-registry: setup
 	$(VENV)/bin/python -m pytest -q -rs --durations=10 tests/registry $(PYTEST_ARGS)

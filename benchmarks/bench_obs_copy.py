@@ -121,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.transfers:
         root = Path(__file__).resolve().parents[1]
         tests = root / "tests"
-        paths = [tests / "cuda" / "cuda_site", tests, root, *filter(None, [os.environ.get("PYTHONPATH")])]
+        paths = [tests / "gpu" / "cuda_site", tests, root, *filter(None, [os.environ.get("PYTHONPATH")])]
         env_vars = dict(os.environ, MANISKILL_TORCHRL_CUDA_DOUBLE="1", PYTHONPATH=os.pathsep.join(map(str, paths)))
         cmd = [sys.executable, "-m", "benchmarks.bench_obs_copy", "--_under-double", "--size", str(args.size)]
         return subprocess.run([*cmd, "--steps", str(args.steps)], env=env_vars, cwd=root).returncode

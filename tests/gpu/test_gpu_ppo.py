@@ -21,6 +21,7 @@ import importlib.util
 from pathlib import Path
 from unittest import mock
 
+import pytest
 import torch
 
 from gpu_helpers import CUDA, NUM_ENVS, count_host_syncs, requires_gpu, sync_counts, sync_sites
@@ -92,7 +93,8 @@ def test_ppo_collector_iterations_without_per_step_host_sync(tmp_path, record_pr
     assert record["episodes"] > 0
 
     if not CUDA:
-        return
+        # The training above ran on the CPU stand-in; its host syncs are only counted on CUDA.
+        pytest.skip("host syncs are counted on CUDA only (the PPO run above passed)")
     env_steps = ITERATIONS * STEPS
     counts = sync_counts(stacks)
     lib_sites = sync_sites(stacks, "maniskill_torchrl")

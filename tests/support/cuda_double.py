@@ -28,11 +28,11 @@ host's waits for the device (``.cpu()``, ``.tolist()``, ``.item()``, ``synchroni
 
 Importing this module registers the device, which torch then takes for the machine's
 accelerator: so it is only imported in processes that stand for a CUDA machine.
-``tests/cuda_site`` holds a ``sitecustomize.py`` that calls :func:`install` in every Python
+``tests/gpu/cuda_site`` holds a ``sitecustomize.py`` that calls :func:`install` in every Python
 process started with that folder on ``PYTHONPATH`` and ``MANISKILL_TORCHRL_CUDA_DOUBLE=1``
-(``tests/test_cuda_machine.py`` starts one so): the test's subprocess and the CPU workers of a batched env or of a
-``ParallelEnv``, started by forkserver or spawn. ``tests/test_cuda_machine.py`` runs
-``tests/cuda_machine_cases.py`` with pytest in such a subprocess.
+(``tests/gpu/test_cuda_machine.py`` starts one so): the test's subprocess and the CPU workers of a batched env or of a
+``ParallelEnv``, started by forkserver or spawn. ``tests/gpu/test_cuda_machine.py`` runs
+``tests/gpu/cuda_machine_cases.py`` with pytest in such a subprocess.
 """
 
 from __future__ import annotations
@@ -241,7 +241,7 @@ def _patches() -> list[tuple[Any, str, Any]]:
     from mani_skill.utils import common
     from mani_skill.utils.structs.render_camera import RenderCamera
 
-    import maniskill_torchrl._maniskill as lib_maniskill
+    import maniskill_torchrl._internal.rendering as lib_maniskill
 
     parse = sapien_env.parse_sim_and_render_backend
 

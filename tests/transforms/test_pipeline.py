@@ -4,8 +4,6 @@ docstring examples of the core modules it rests on."""
 from __future__ import annotations
 
 import doctest
-import functools
-import pickle
 
 import pytest
 import torch
@@ -54,11 +52,6 @@ def test_repeat_one_and_no_metrics_is_the_bare_unbatched_env():
 def test_bad_repeat_raises_before_building(bad, error):
     with pytest.raises(error, match="repeat must be"):
         make_env("PickCube-v1", repeat=bad, obs_mode="state")
-
-
-def test_partial_pickles_for_worker_processes():
-    factory = functools.partial(make_env, "PickCube-v1", repeat=2, obs_mode="state")
-    assert pickle.loads(pickle.dumps(factory)).func is make_env
 
 
 @pytest.mark.parametrize(

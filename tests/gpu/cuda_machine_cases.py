@@ -2,7 +2,7 @@
 of ``tests/support/cuda_double.py``: pictures and ``render()`` come back on ``fakecuda:0`` (CUDA's rules:
 no ``.numpy()``, no mixing with CPU tensors) as reused buffers, states on the CPU.
 
-Not collected by ``pytest tests``: ``tests/test_cuda_machine.py`` runs this file with pytest in a
+Not collected by ``pytest tests``: ``tests/gpu/test_cuda_machine.py`` runs this file with pytest in a
 subprocess whose Python processes (the CPU workers included) all load the double. The oracle of
 every value is the same env rendering through ManiSkill's CPU read (``render_backend="cpu"``),
 its data moved to ``env.device`` before comparing.
@@ -23,13 +23,13 @@ from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
 if os.environ.get("MANISKILL_TORCHRL_CUDA_DOUBLE") != "1":
-    pytest.skip("runs under the CUDA double only (tests/test_cuda_machine.py)", allow_module_level=True)
+    pytest.skip("runs under the CUDA double only (tests/gpu/test_cuda_machine.py)", allow_module_level=True)
 
 from maniskill_torchrl import EpisodeMetrics, ManiSkillEnv  # noqa: E402
 from maniskill_torchrl.parallel import ManiSkillParallelEnv  # noqa: E402
 from maniskill_torchrl.testing import assert_on_device, assert_tensordict_equal  # noqa: E402
 from maniskill_torchrl.wrappers import CPUGymWrapper  # noqa: E402
-from support.cuda_double import DEVICE  # noqa: E402  (the sitecustomize of tests/cuda/cuda_site installed it)
+from support.cuda_double import DEVICE  # noqa: E402  (the sitecustomize of tests/gpu/cuda_site installed it)
 from support.helpers import closed_after_test, random_actions  # noqa: E402, F401  (closed_after_test: the envs fixture)
 
 ENV_ID = "PickCube-v1"

@@ -18,7 +18,7 @@ import sys
 from support.helpers import ROOT
 
 #: Run together, in one subprocess (one start-up of torch, TorchRL and ManiSkill).
-HERE = ROOT / "tests" / "cuda"
+HERE = ROOT / "tests" / "gpu"
 CASES = [HERE / "cuda_machine_cases.py", HERE / "cuda_device_cases.py"]
 
 

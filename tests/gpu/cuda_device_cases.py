@@ -1,7 +1,7 @@
 """``env.to(device)`` and the copies of a step, on a stand-in CUDA machine (``tests/support/cuda_double.py``).
 
-Not collected by ``pytest tests``: ``tests/test_cuda_machine.py`` runs this file with
-``tests/cuda_machine_cases.py`` in one subprocess under the double.
+Not collected by ``pytest tests``: ``tests/gpu/test_cuda_machine.py`` runs this file with
+``tests/gpu/cuda_machine_cases.py`` in one subprocess under the double.
 
 - ``env.to(device)`` at any time, both ways, keeps the device rule: every leaf of every output
   (steps, resets, ``"pixels"``, ``render()``, infos, saved states) on the new device, actions taken
@@ -23,7 +23,7 @@ from torchrl.envs import SerialEnv, TransformedEnv
 from torchrl.envs.utils import step_mdp
 
 if os.environ.get("MANISKILL_TORCHRL_CUDA_DOUBLE") != "1":
-    pytest.skip("runs under the CUDA double only (tests/test_cuda_machine.py)", allow_module_level=True)
+    pytest.skip("runs under the CUDA double only (tests/gpu/test_cuda_machine.py)", allow_module_level=True)
 
 from maniskill_torchrl import EpisodeMetrics, ManiSkillEnv  # noqa: E402
 from maniskill_torchrl.parallel import ManiSkillParallelEnv  # noqa: E402
