@@ -1,6 +1,6 @@
 # maniskill_torchrl developer targets. Run `make` for help.
 .DEFAULT_GOAL := help
-.PHONY: help setup test test-cuda-double test-registry test-nightly lint docs demo bench clean gpu-kit gpu-check
+.PHONY: help setup test test-upstream test-cuda-double test-registry test-nightly lint docs demo bench clean gpu-kit gpu-check
 
 # MANISKILL=release (default: mani-skill 3.0.x, in .venv) or nightly (mani-skill-nightly, in .venv-nightly).
 MANISKILL   ?= release
@@ -16,6 +16,7 @@ help:
 	@echo "Targets:"
 	@echo "  make setup   create .venv and install the package (+ test, demo, distributed, docs, maniskill extras); checks Vulkan"
 	@echo "  make test    run the test suite (PYTEST_ARGS=... passed to pytest)"
+	@echo "  make test-upstream  the TorchRL pull request of upstream/ on a copy of the installed torchrl (tests/upstream, ~2 min)"
 	@echo "  make test-cuda-double  the library on a CUDA machine, under the CUDA double (tests/gpu/test_cuda_machine.py, ~1.5 min)"
 	@echo "  make test-registry  every task of ManiSkill's registry whose assets are here (tests/registry)"
 	@echo "               MANISKILL=nightly: against mani-skill-nightly, in .venv-nightly (= make test-nightly)"
@@ -36,7 +37,12 @@ setup:
 # slowest file): their own target, so that `make test` stays well inside 10 minutes on 2 cores.
 test: setup lint
 	$(VENV)/bin/python -m pytest -q --durations=15 tests --ignore=tests/registry --ignore=tests/docs \
-		--ignore=tests/gpu/test_cuda_machine.py $(PYTEST_ARGS)
+		--ignore=tests/gpu/test_cuda_machine.py --ignore=tests/upstream $(PYTEST_ARGS)
+
+# upstream/ (upstream/README.md): the module, exports, config and TorchRL's test file applied to a copy of the
+# installed torchrl, whose test file then runs in a child process.
+test-upstream: setup
+	$(VENV)/bin/python -m pytest -q --durations=5 tests/upstream $(PYTEST_ARGS)
 
 test-cuda-double: setup
 	$(VENV)/bin/python -m pytest -q --durations=5 tests/gpu/test_cuda_machine.py $(PYTEST_ARGS)
