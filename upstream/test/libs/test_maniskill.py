@@ -15,6 +15,9 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import os
+import subprocess
+import sys
 
 import pytest
 import torch
@@ -499,46 +502,62 @@ class TestManiSkillConfig:
             env.close()
 
 
-# The GPU sim last: once a process has enabled PhysX's GPU mode it stays on.
+_NO_GPU_SIM = 3  # exit code of _gpu_sim_smoke where the GPU sim cannot start
+
+
+def _gpu_sim_smoke() -> int:
+    """The GPU sim's smoke test, run in a process of its own (see below)."""
+    import sapien.physx as physx
+
+    try:
+        physx.enable_gpu()
+    except Exception as err:  # e.g. SAPIEN could not fetch its PhysX GPU library
+        print(f"ManiSkill's GPU sim cannot start here: {err}")
+        return _NO_GPU_SIM
+    env = ManiSkillEnv(_TASK, num_envs=4, sim_backend="gpu", obs_mode="state")
+    try:
+        assert env.gpu_sim_enabled
+        assert env.device.type == "cuda"
+        assert env.batch_size == torch.Size([4])
+        check_env_specs(env, seed=_SEED)
+        td = env.reset(seed=_SEED)
+        torch.manual_seed(_SEED)
+        rollout = env.rollout(3, tensordict=td, auto_reset=False)
+        assert rollout.shape == torch.Size([4, 3])
+        for value in rollout.values(True, True):
+            assert value.device == env.device
+        # A partial reset resets the masked envs only.
+        td = rollout[:, -1].get("next").clone()
+        td["_reset"] = torch.tensor(
+            [[True], [False], [False], [False]], device=env.device
+        )
+        out = env.reset(td)
+        torch.testing.assert_close(out["observation"][1:], td["observation"][1:])
+        assert out["elapsed_steps"][0] == 0
+        assert (out["elapsed_steps"][1:] == td["elapsed_steps"][1:]).all()
+    finally:
+        env.close()
+    return 0
+
+
 @pytest.mark.gpu
 @requires_maniskill
 class TestManiSkillGPUSim:
-    @staticmethod
-    def _gpu_sim_or_skip() -> None:
+    def test_gpu_sim_smoke(self):
         if not torch.cuda.is_available():
             pytest.skip("ManiSkill's GPU sim needs CUDA")
-        import sapien.physx as physx
-
-        try:
-            physx.enable_gpu()
-        except Exception as err:
-            pytest.skip(f"ManiSkill's GPU sim cannot start here: {err}")
-
-    def test_gpu_sim_smoke(self):
-        self._gpu_sim_or_skip()
-        env = ManiSkillEnv(_TASK, num_envs=4, sim_backend="gpu", obs_mode="state")
-        try:
-            assert env.gpu_sim_enabled
-            assert env.device.type == "cuda"
-            assert env.batch_size == torch.Size([4])
-            check_env_specs(env, seed=_SEED)
-            td = env.reset(seed=_SEED)
-            torch.manual_seed(_SEED)
-            rollout = env.rollout(3, tensordict=td, auto_reset=False)
-            assert rollout.shape == torch.Size([4, 3])
-            for value in rollout.values(True, True):
-                assert value.device == env.device
-            # A partial reset touches the masked envs only.
-            td = rollout[:, -1].get("next").clone()
-            td["_reset"] = torch.tensor(
-                [[True], [False], [False], [False]], device=env.device
-            )
-            out = env.reset(td)
-            kept = out["observation"][1:]
-            torch.testing.assert_close(kept, td["observation"][1:])
-            assert (out["elapsed_steps"][0] == 0).all()
-        finally:
-            env.close()
+        # PhysX's GPU mode can only be enabled in a process that has not used PhysX
+        # yet, and this one runs the CPU sim: the GPU sim gets a process of its own.
+        code = (
+            f"import sys; sys.path.insert(0, {os.path.dirname(__file__)!r}); "
+            f"from {__name__} import _gpu_sim_smoke; sys.exit(_gpu_sim_smoke())"
+        )
+        proc = subprocess.run(
+            [sys.executable, "-c", code], capture_output=True, text=True, timeout=600
+        )
+        if proc.returncode == _NO_GPU_SIM:
+            pytest.skip(proc.stdout.strip().splitlines()[-1])
+        assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-4000:]
 
 
 if __name__ == "__main__":
