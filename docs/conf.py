@@ -6,6 +6,7 @@ import os
 import sys
 
 sys.path.insert(0, os.path.abspath(".."))
+sys.path.insert(0, os.path.abspath("_ext"))  # curves: the pictures of curves.md, drawn from benchmarks/ at build time
 
 import maniskill_torchrl  # noqa: E402
 
@@ -19,6 +20,7 @@ extensions = [
     "sphinx.ext.autodoc",
     "sphinx.ext.napoleon",
     "sphinx.ext.viewcode",
+    "curves",
 ]
 
 source_suffix = {".md": "markdown"}

@@ -1,0 +1,242 @@
+"""Sphinx extension: draws the pictures of ``docs/curves.md`` from the data in git when the site is
+built (``builder-inited``), into ``docs/_generated/curves/`` (git-ignored; no image is in git).
+
+- the learning curves: ``benchmarks/ppo/pullcube_cpu_30min.csv`` (PPO, PullCube-v1),
+  ``benchmarks/sac/pushcube_ee_b256.csv`` (SAC, PushCube-v1), ``benchmarks/bc/mlp_1000demos.csv``
+  (behaviour cloning). They are drawn by ``benchmarks/plot_ppo.py`` and ``benchmarks/plot_runs.py``,
+  the scripts that plot a run's ``metrics.jsonl``: each CSV row becomes one record of such a log;
+- the collection figures, frames/s against N, this library against gym:
+  ``benchmarks/collection/sweep_2cores.csv`` and ``benchmarks/collection/sweep_16cores_h200.csv``
+  (the tables of ``benchmarks/RESULTS.md``, copied).
+
+``draw_all(out_dir)`` draws every picture; ``tests/docs/test_curves.py`` runs it into a temporary
+folder.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import io
+import json
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+OUT = "_generated/curves"  # under docs/, where docs/curves.md finds the pictures
+
+# The evaluations of the PPO and SAC examples play 50 seeded episodes (benchmarks/RESULTS.md, "PPO"
+# and "SAC"); their CSVs do not repeat it, plot_ppo's axis label says it.
+RL_EVAL_EPISODES = 50
+
+
+def read_csv(path: Path) -> list[dict]:
+    """The rows of a CSV, ``#`` comment lines skipped, numbers as numbers, empty cells as None."""
+    lines = [line for line in path.read_text().splitlines() if not line.startswith("#")]
+    rows = []
+    for row in csv.DictReader(lines):
+        rows.append({k: _number(v) for k, v in row.items()})
+    return rows
+
+
+def _number(v: str):
+    if v == "":
+        return None
+    for kind in (int, float):
+        try:
+            return kind(v)
+        except ValueError:
+            pass
+    return v
+
+
+def _write_jsonl(rows: list[dict], path: Path) -> Path:
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    return path
+
+
+def _quiet(main, argv: list[str]):
+    """Runs a plot script's ``main`` without its "wrote ..." line; returns the figure it drew
+    (still open: the scripts save it and leave it), for the touches below."""
+    import matplotlib.pyplot as plt
+
+    with contextlib.redirect_stdout(io.StringIO()):
+        main(argv)
+    return plt.gcf()
+
+
+def _thousands(ax) -> None:
+    from matplotlib.ticker import FuncFormatter
+
+    ax.xaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{x / 1000:g}k" if x else "0"))
+
+
+def draw_ppo(out: Path, tmp: Path) -> Path:
+    from benchmarks import plot_ppo
+
+    rows = read_csv(ROOT / "benchmarks" / "ppo" / "pullcube_cpu_30min.csv")
+    log = _write_jsonl([{**r, "episodes": RL_EVAL_EPISODES} for r in rows], tmp / "ppo.jsonl")
+    png = out / "ppo_pullcube.png"
+    title = "PPO on PullCube-v1 (pd_ee_delta_pos), CPU sim, 2 cores, 2026-11-23"
+    fig = _quiet(plot_ppo.main, [str(log), "--out", str(png), "--title", title])
+    # plot_ppo's wall-minutes axis puts a tick past the run's end (its interpolation stops at the
+    # last evaluation, so 35 lands on 30); frames as 50k, not 50000, so that the labels do not touch.
+    last_min = rows[-1]["wall_s"] / 60
+    for ax in fig.axes:
+        _thousands(ax)
+        for top in ax.child_axes:
+            top.set_xticks([m for m in range(0, int(last_min) + 1, 5)])
+    fig.savefig(png, dpi=110)
+    return png
+
+
+def draw_sac(out: Path, tmp: Path) -> Path:
+    from benchmarks import plot_runs
+
+    rows = read_csv(ROOT / "benchmarks" / "sac" / "pushcube_ee_b256.csv")
+    log = _write_jsonl([{**r, "episodes": RL_EVAL_EPISODES} for r in rows], tmp / "sac.jsonl")
+    png = out / "sac_pushcube.png"
+    title = "SAC on PushCube-v1 (pd_ee_delta_pos, batch 256), CPU sim, 2 cores, 2026-11-25"
+    fig = _quiet(plot_runs.main, [f"SAC={log}", "--out", str(png), "--title", title])
+    # plot_runs labels its axes for RL and BC runs together: this picture is one RL run.
+    for ax in fig.axes[0::2]:
+        ax.set_xlabel("frames (env steps)")
+        _thousands(ax)
+    fig.axes[0].set_ylabel(f"success_once ({RL_EVAL_EPISODES} seeded episodes)")
+    fig.axes[2].set_ylabel("episode return (deterministic policy)")
+    fig.savefig(png, dpi=90)
+    return png
+
+
+def draw_bc(out: Path, tmp: Path) -> Path:
+    from benchmarks import plot_runs
+
+    rows = read_csv(ROOT / "benchmarks" / "bc" / "mlp_1000demos.csv")
+    runs = []
+    for task in dict.fromkeys(r["task"] for r in rows):
+        records = [{k: v for k, v in r.items() if k != "task"} for r in rows if r["task"] == task]
+        runs.append(f"{task}={_write_jsonl(records, tmp / f'bc_{task}.jsonl')}")
+    png = out / "bc.png"
+    title = "Behaviour cloning (MLP, 1000 demos), CPU sim, 2 cores, 2026-11-25"
+    fig = _quiet(plot_runs.main, [*runs, "--out", str(png), "--title", title])
+    # plot_runs labels its axes for RL and BC runs together, and its title names a random-policy
+    # line that BC's logs do not have; the two runs' wall clocks start at different points.
+    episodes = rows[0]["episodes"]
+    fig.suptitle(f"{title}: an evaluation every 2500 iterations")
+    for ax in fig.axes[0::2]:
+        ax.set_xlabel("iterations (gradient steps)")
+    for ax in fig.axes[1::2]:
+        ax.set_xlabel("wall minutes (PushCube-v1's include making the demos)")
+    fig.axes[0].set_ylabel(f"success_once ({episodes} seeded episodes)")
+    fig.axes[2].set_ylabel("episode return (deterministic policy)")
+    fig.savefig(png, dpi=90)
+    return png
+
+
+def draw_collection(csv_path: Path, png: Path, title: str, error_bars: bool) -> Path:
+    """frames/s against N, one line per pipeline, gym's first; the table's ratios to gym written
+    beside their points; min-max bars where the CSV has them; a dotted line for N x gym's N=1."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = read_csv(csv_path)
+    pipelines = list(dict.fromkeys(r["pipeline"] for r in rows))
+    ns = sorted({r["n"] for r in rows})
+    fig, ax = plt.subplots(figsize=(8, 5))
+    # a small sideways shift per pipeline, so that points and bars at the same N do not hide each other
+    shift = 0.012 * (ns[-1] - ns[0] or 1)
+    notes = []
+    for i, name in enumerate(pipelines):
+        mine = sorted((r for r in rows if r["pipeline"] == name), key=lambda r: r["n"])
+        xs = [r["n"] + (i - (len(pipelines) - 1) / 2) * shift for r in mine]
+        ys = [r["frames_per_s"] for r in mine]
+        style = dict(color=f"C{i}", marker="os^D"[i % 4], ms=6, lw=2 if name.startswith("batched") else 1.3)
+        if name.startswith("gym"):
+            style["ls"] = "--"
+        if error_bars:
+            err = [[r["frames_per_s"] - r["min"] for r in mine], [r["max"] - r["frames_per_s"] for r in mine]]
+            ax.errorbar(xs, ys, yerr=err, capsize=4, label=mine[0]["label"], **style)
+        else:
+            ax.plot(xs, ys, label=mine[0]["label"], **style)
+        notes += [(x, r, f"C{i}") for x, r in zip(xs, mine) if r.get("ratio_to_gym") is not None]
+    # The table's ratios beside their points: left of the first N, right of the others; at one N,
+    # the highest point's above and the next ones lower down, so that close points' notes do not overlap.
+    for n in ns:
+        here = sorted((t for t in notes if t[1]["n"] == n), key=lambda t: -t[1]["frames_per_s"])
+        for rank, (x, r, color) in enumerate(here):
+            first = n == ns[0]
+            ax.annotate(
+                f"{r['ratio_to_gym']:.2f}x gym",
+                (x, r["frames_per_s"]),
+                textcoords="offset points",
+                xytext=(-10 if first else 10, 8 - 14 * rank),
+                fontsize=8,
+                color=color,
+                ha="right" if first else "left",
+                va="center",
+                bbox=dict(fc="white", ec="none", alpha=0.8, pad=0.5),
+            )
+    gym1 = next(r["frames_per_s"] for r in rows if r["pipeline"] == "gym" and r["n"] == ns[0])
+    ax.plot(ns, [n * gym1 / ns[0] for n in ns], ":", color="gray", lw=1, label="N x gym's N=1 rate (perfect scaling)")
+    ax.set_xticks(ns)
+    ax.set_xlim(ns[0] - 0.12 * (ns[-1] - ns[0]), ns[-1] + 0.12 * (ns[-1] - ns[0]))
+    ax.set_xlabel("N (sub-envs, one process each)")
+    ax.set_ylabel("frames/s (agent steps per second)")
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="upper left")
+    ax.set_title(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(png, dpi=100)
+    plt.close(fig)
+    return png
+
+
+def draw_all(out_dir: Path) -> list[Path]:
+    """Draws every picture into ``out_dir``; returns their paths."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if str(ROOT) not in sys.path:
+        sys.path.insert(0, str(ROOT))
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    pngs = []
+    with tempfile.TemporaryDirectory(prefix="maniskill_torchrl_curves_") as tmp:
+        for draw in (draw_ppo, draw_sac, draw_bc):
+            pngs.append(draw(out_dir, Path(tmp)))
+            plt.close("all")
+    data = ROOT / "benchmarks" / "collection"
+    pngs.append(
+        draw_collection(
+            data / "sweep_2cores.csv",
+            out_dir / "collection_2cores.png",
+            "Collection, PickCube-v1 state, 2 cores (AMD EPYC, CPU sim), 2026-11-26\n"
+            "median of 5 rounds x 10 s, bars: min-max",
+            error_bars=True,
+        )
+    )
+    pngs.append(
+        draw_collection(
+            data / "sweep_16cores_h200.csv",
+            out_dir / "collection_16cores.png",
+            "Collection, PickCube-v1 state, 16 cores (lent H200 machine, CPU sim), 2026-11-27\n"
+            "one round of 2 s: a first look, not a median",
+            error_bars=False,
+        )
+    )
+    return pngs
+
+
+def _builder_inited(app) -> None:
+    draw_all(Path(app.srcdir) / OUT)
+
+
+def setup(app):
+    app.connect("builder-inited", _builder_inited)
+    return {"version": "1", "parallel_read_safe": True, "parallel_write_safe": True}
