@@ -66,8 +66,9 @@ class ActionRepeat(Transform):
 
     Unlike :class:`~torchrl.envs.FrameSkipTransform`, this transform neither
     adds rewards from after an episode's end nor loses a termination that
-    happens mid-repeat, and it steps the parent with the input as this
-    transform sees it (the parent's own inverse transforms are applied once).
+    happens mid-repeat, and the parent's own inverse transforms are applied
+    once per outer step, not once more per inner step. Like it, it only works
+    inside a :class:`~torchrl.envs.TransformedEnv`: :meth:`forward` raises.
 
     Args:
         repeat (int): inner steps per outer step, ``>= 1``. ``repeat=1`` is a
@@ -97,23 +98,31 @@ class ActionRepeat(Transform):
         repeat = check_repeat(repeat)
         super().__init__()
         self.repeat = repeat
-        self._stash: TensorDictBase | None = None
         self._cache: _ParentInfo | None = None
         self._delegated = False  # this step's repeat was handed to the parent's CPU workers
 
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Raises: the transform steps its parent env, and a tensordict alone has none."""
+        raise RuntimeError(
+            "ActionRepeat steps the env it is appended to, so it can only be used inside a "
+            "TransformedEnv, as TorchRL's FrameSkipTransform: "
+            "TransformedEnv(env, ActionRepeat(repeat)). Called on a tensordict alone it would "
+            "return it unchanged."
+        )
+
     # ------------------------------------------------------------- internals
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
-        # Why: the ``tensordict`` handed to ``_step`` has been through the inverse of
-        # every transform, the parent's own included; stepping the parent with it
-        # would apply those a second time. Compose runs inverses last to first, so
-        # here only the later transforms' inverses were applied: keep this view (a
-        # shallow copy, as the earlier inverses set entries on the same object).
-        self._delegated = False
-        if self.repeat > 1:
-            if self._delegate(tensordict):
-                return tensordict
-            self._stash = tensordict.exclude("next")
+        # The last hook before the parent steps. Nothing of ``tensordict`` is kept.
+        self._begin_step(tensordict)
         return tensordict
+
+    def _begin_step(self, tensordict: TensorDictBase) -> None:
+        """Before each step of the parent: where its CPU workers can repeat this step
+        themselves, asks them now (a later ActionRepeat calls it before each of its inner
+        steps, which skip the inverse pass)."""
+        self._delegated = False
+        if self.repeat > 1 and self.parent is not None:
+            self._delegate(tensordict)
 
     def _delegate(self, tensordict: TensorDictBase) -> bool:
         """Asks the parent's CPU workers to repeat this step themselves, where they can.
@@ -123,8 +132,6 @@ class ActionRepeat(Transform):
         repeated twice. Not with an outer partial step (a ``"_step"`` mask that is not all
         True): the inner loop keeps the envs it skips as they were.
         """
-        if self.parent is None:
-            return False
         workers = self._parent_info().workers
         if workers is None:
             return False
@@ -155,9 +162,11 @@ class ActionRepeat(Transform):
         if self._delegated:  # the sub-envs repeated it: one outer step already
             self._delegated = False
             return next_tensordict
-        td, self._stash = self._stash, None
-        if td is None:  # _step called without the TransformedEnv's inverse pass
-            td = tensordict.exclude("next")
+        # ``tensordict`` is the step's input after every inverse transform, the parent's own
+        # included: the inner steps go to the parent's base env with it, then through the
+        # parent's transforms' forward pass (parent._step would apply their inverses again).
+        # A shallow copy: the inner loop sets "_step" and state entries on it.
+        td = tensordict.exclude("next")
         info = self._parent_info()
         reward_keys, done_keys, stop_keys = info.reward_keys, info.done_keys, info.stop_keys
 
@@ -204,6 +213,8 @@ class _ParentInfo:
         "partial",
         "workers",
         "_base",
+        "_transform",
+        "_repeats",
         "_complete",
     )
 
@@ -221,29 +232,37 @@ class _ParentInfo:
         self.partial = isinstance(base, BatchedEnvBase)
         transform = parent.transform
         empty = isinstance(transform, Compose) and len(transform) == 0
-        # Why: with no transform before this one, parent._step is base_env._step wrapped in an
-        # identity inverse (a clone) and an identity forward pass: call the base env directly.
-        self._base = parent.base_env if empty else None
+        # The transforms before this one: their forward pass runs on every inner step (their
+        # inverses ran once, before the outer step). None where there are none.
+        self._transform = None if empty else transform
+        # The ActionRepeats among them ask for the workers' repeat in their inverse pass, which
+        # inner steps skip: they are asked before each inner step instead.
+        earlier = transform if isinstance(transform, Compose) else [transform]
+        self._repeats = [] if empty else [t for t in earlier if isinstance(t, ActionRepeat)]
+        self._base = parent.base_env
         # Directly on an env that may have its CPU workers repeat actions themselves
         # (ManiSkillWrapper.request_worker_repeat, which says whether they will): no transform
         # between would see the inner steps. Looked up on the class: batched and transformed envs
         # forward unknown attributes to their sub-envs.
-        base_env = self._base
+        base_env = self._base if empty else None
         self.workers = base_env if callable(getattr(type(base_env), "request_worker_repeat", None)) else None
         self._complete: bool | None = None
 
     def step(self, td: TensorDictBase) -> TensorDictBase:
+        """One inner step of the parent with ``td``, whose inverse transforms were applied:
+        what ``parent._step`` does after its inverse pass."""
         base = self._base
-        if base is None:
-            return env_step(self.parent, td)
+        for repeat in self._repeats:
+            repeat._begin_step(td)
         out = env_step(base, td)
         complete = self._complete
         if complete is None:  # fill missing done entries as TransformedEnv does, if this env needs it
             keys = set(out.keys(True, True))
-            complete = self._complete = all(k in keys for k in self.done_keys)
+            complete = self._complete = all(k in keys for k in base.done_keys)
         if not complete:
             complete_done(base, out)
-        return out
+        transform = self._transform
+        return out if transform is None else transform._step(td, out)
 
 
 def any_done(td: TensorDictBase, done_keys: Sequence[NestedKey]) -> torch.Tensor:

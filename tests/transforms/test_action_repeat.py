@@ -17,6 +17,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from mani_skill.utils.wrappers.action_repeat import ActionRepeatWrapper
+from tensordict import TensorDictBase
 from torchrl.envs import (
     Compose,
     FrameSkipTransform,
@@ -452,3 +453,29 @@ def test_bad_repeat(bad, error):
 def test_exported_and_repr():
     assert ActionRepeat is ActionRepeatFromTransforms
     assert repr(ActionRepeat(4)) == "ActionRepeat(repeat=4)"
+
+
+def test_forward_outside_an_env_raises_with_the_fix():
+    """Called on a tensordict alone it has no env to step: it says so, as TorchRL's
+    FrameSkipTransform does, instead of returning the data unchanged."""
+    td = ToyEnv([3]).reset().set("action", torch.zeros(1, 2))
+    with pytest.raises(RuntimeError, match=r"inside a TransformedEnv.*FrameSkipTransform"):
+        ActionRepeat(2)(td)
+    with pytest.raises(RuntimeError, match=r"inside a TransformedEnv"):
+        Compose(ActionRepeat(2)).forward(td)
+
+
+def test_keeps_nothing_from_its_inverse_pass():
+    """The inner loop reads what it needs from the ``tensordict`` that ``_step`` is given: an
+    inverse pass alone (a replay buffer's ``inv``, say) leaves no data on the transform, and the
+    earlier transform's inverse still reaches every inner step once."""
+    env = TransformedEnv(ToyEnv([9, 2]), Compose(_AddOneToAction(), ActionRepeat(3)))
+    repeat = env.transform[1]
+    td = env.reset().set("action", torch.tensor([[0.5, 0.0], [0.25, 0.0]]))
+    env.transform.inv(td.clone())
+    held = [name for name, value in vars(repeat).items() if isinstance(value, TensorDictBase)]
+    assert not held, held
+    nxt = env.step(td)["next"]
+    assert nxt["elapsed_steps"].tolist() == [3, 2]
+    assert nxt["observation"][:, 2].tolist() == [1.5, 1.25]  # action + 1, not + 2
+    assert not [name for name, value in vars(repeat).items() if isinstance(value, TensorDictBase)]
