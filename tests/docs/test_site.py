@@ -4,6 +4,7 @@ page documents every public name. Not part of ``make test`` (it needs the build)
 from __future__ import annotations
 
 import importlib
+import re
 from pathlib import Path
 
 import pytest
@@ -29,7 +30,7 @@ def test_built():
     assert (HTML / "index.html").is_file(), f"no site in {HTML}: run `make docs`"
 
 
-PAGES = ["index", "api", "results", "changelog", "contributing", *(f"guides/{g}" for g in GUIDES)]
+PAGES = ["index", "api", "results", "curves", "changelog", "contributing", *(f"guides/{g}" for g in GUIDES)]
 
 
 @pytest.mark.parametrize("page", PAGES)
@@ -65,3 +66,12 @@ def test_api_page_is_for_users(api_html):
 def test_api_documents_methods_from_the_library_mixins(api_html, method):
     # ManiSkillWrapper takes these from the library's own mixins (saved states, layout)
     assert f'id="maniskill_torchrl.ManiSkillWrapper.{method}"' in api_html
+
+
+def test_curves_page_shows_its_pictures():
+    """The curves page embeds every picture drawn at build time, and each was copied into the site."""
+    html = (HTML / "curves.html").read_text()
+    images = re.findall(r'<img[^>]+src="([^"]+\.png)"', html)
+    assert len(images) >= 5, images
+    for src in images:
+        assert (HTML / src).is_file(), f"{src} is not in the site"
