@@ -389,12 +389,12 @@ class TestManiSkillPixels:
             assert (sensor_key in env.observation_spec.keys(True)) != pixels_only
             td = env.reset(seed=_SEED)
             raw.reset(seed=_SEED)
-            frame = torch.as_tensor(raw.render())
+            frame = torch.as_tensor(raw.render()).to(env.device)
             assert td["frames"].shape == spec.shape == frame.shape
             torch.testing.assert_close(td["frames"], frame, rtol=0, atol=0)
             td = env.rand_step(td)
             raw.step(_raw_action(td))
-            frame = torch.as_tensor(raw.render())
+            frame = torch.as_tensor(raw.render()).to(env.device)
             torch.testing.assert_close(td["next", "frames"], frame, rtol=0, atol=0)
             check_env_specs(env, seed=_SEED)
         finally:
