@@ -32,8 +32,9 @@ class EpisodeMetrics(Transform):
 
     The entries are declared in the observation spec, so batched envs and
     collectors keep them; each has the parent's batch shape. They are also the
-    transform's running state: each step reads the last ones from the input
-    tensordict, as TorchRL's ``StepCounter`` and ``RewardSum`` do, so stepping
+    transform's running state, declared in ``full_state_spec`` as TorchRL's
+    ``RewardSum`` declares its ``episode_reward``: each step reads the last ones
+    from the input tensordict, as ``StepCounter`` and ``RewardSum`` do, so stepping
     twice from the same root (``env.rollout(n, tensordict=root)``, planners)
     starts both branches from that root's values. At reset they are zeros for
     the envs being reset; a ``"_reset"`` mask resets only those envs (partial
@@ -152,6 +153,16 @@ class EpisodeMetrics(Transform):
     def transform_observation_spec(self, observation_spec: TensorSpec) -> TensorSpec:
         observation_spec["episode"] = self._episode_spec()
         return observation_spec
+
+    def transform_input_spec(self, input_spec: TensorSpec) -> TensorSpec:
+        # The running state, as RewardSum's: batched envs send it to their workers with the
+        # action, and an ActionRepeat placed after this transform carries it between inner steps.
+        state_spec = input_spec["full_state_spec"]
+        if state_spec is None:
+            state_spec = Composite(shape=input_spec.shape, device=input_spec.device)
+        state_spec["episode"] = self._episode_spec()
+        input_spec["full_state_spec"] = state_spec
+        return input_spec
 
     # ----------------------------------------------------------- data
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:

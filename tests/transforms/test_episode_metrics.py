@@ -13,7 +13,14 @@ from tensordict import TensorDict
 from torchrl.envs import Compose, ExcludeTransform, SerialEnv, TransformedEnv
 from torchrl.envs.utils import check_env_specs, step_mdp
 
-from maniskill_torchrl import CPUUnbatch, EpisodeMetrics, IgnoreTerminations, ManiSkillEnv, ManiSkillWrapper
+from maniskill_torchrl import (
+    ActionRepeat,
+    CPUUnbatch,
+    EpisodeMetrics,
+    IgnoreTerminations,
+    ManiSkillEnv,
+    ManiSkillWrapper,
+)
 from maniskill_torchrl.transforms import EpisodeMetrics as EpisodeMetricsFromTransforms
 from support.helpers import bits, make_gym_env, random_actions
 from support.toy_env import ToyEnv, serial_toy_env
@@ -236,6 +243,34 @@ def test_specs_and_no_success_fail():
     assert set(roll["next", "episode"].keys()) == {"return", "episode_len", "reward"}
     assert EpisodeMetrics is EpisodeMetricsFromTransforms
     assert repr(EpisodeMetrics()) == "EpisodeMetrics()"
+
+
+def test_running_state_is_declared_in_full_state_spec():
+    """As RewardSum's ``episode_reward``: the running metrics are env state (``full_state_spec``)
+    and still observations, so TorchRL carries them from one step to the next as inputs."""
+    env = TransformedEnv(ToyEnv([3, 5]), EpisodeMetrics())
+    assert "episode" in env.full_state_spec.keys()
+    assert env.full_state_spec["episode"] == env.observation_spec["episode"]
+    check_env_specs(env)
+    # A collector's output is what a rollout's is: the reference numbers, root and "next".
+    from torchrl.collectors import Collector
+
+    collector = Collector(env, None, frames_per_batch=2 * 12, total_frames=2 * 12)
+    batch = next(iter(collector))
+    collector.shutdown()
+    assert batch.shape == torch.Size([2, 12])
+    _assert_matches_reference(batch)
+
+
+def test_placed_before_action_repeat_it_counts_every_inner_step():
+    """Before ActionRepeat, each inner step starts from the state the last one left (the
+    parent's ``full_state_spec`` entries are carried over): inner steps are counted and summed."""
+    env = TransformedEnv(ToyEnv([9, 2], terminate=False), Compose(EpisodeMetrics(), ActionRepeat(3)))
+    check_env_specs(env)
+    td = env.reset().set("action", torch.zeros(2, 2))
+    nxt = env.step(td)["next"]
+    assert nxt["episode", "episode_len"].tolist() == [3, 2]
+    assert torch.equal(nxt["episode", "return"], nxt["reward"].squeeze(-1))
 
 
 def test_error_reward_per_agent():
