@@ -21,6 +21,7 @@ import sys
 
 import pytest
 import torch
+import torchrl.envs.libs.maniskill as maniskill_lib
 from tensordict import TensorDictBase
 
 from torchrl.collectors import Collector
@@ -440,6 +441,11 @@ class TestManiSkillWrapper:
 
 @requires_maniskill
 class TestManiSkillErrors:
+    def test_maniskill_not_installed(self, monkeypatch):
+        monkeypatch.setattr(maniskill_lib, "_has_maniskill", False)
+        with pytest.raises(ImportError, match="pip install mani_skill"):
+            ManiSkillEnv(_TASK)
+
     def test_unknown_task(self):
         with pytest.raises(ValueError, match="available_envs"):
             ManiSkillEnv("PickCub-v1")
