@@ -2,11 +2,21 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
-from tensordict import NestedKey, TensorDictBase
-from torchrl.envs import Transform
+from tensordict import NestedKey, TensorDictBase, unravel_key
+from torchrl.envs import EnvBase, Transform
 
 __all__ = ["IgnoreTerminations"]
+
+# (terminated, truncated, done) keys of one group of done entries.
+_Group = tuple[NestedKey, NestedKey, NestedKey]
+
+
+def _sibling(key: NestedKey, name: str) -> NestedKey:
+    """``key`` with its last element replaced by ``name``."""
+    return name if isinstance(key, str) else unravel_key((*key[:-1], name))
 
 
 def _last(key: NestedKey) -> str:
@@ -22,10 +32,20 @@ class IgnoreTerminations(Transform):
     running, and its ``success`` / ``fail`` entries keep being reported.
     Specs are unchanged.
 
-    Every group of done entries of the parent is handled, at the root and
-    nested (multi-agent ``("agents", "terminated")`` ...): within a group,
-    ``terminated`` becomes all False and ``done`` a copy of the group's
-    ``truncated`` (all False where the group has none).
+    Each terminated key names a group of done entries, at the root or nested
+    (multi-agent ``("agents", "terminated")`` ...): within a group,
+    ``terminated`` becomes all False and its sibling ``done`` a copy of its
+    sibling ``truncated`` (all False where the group has none).
+
+    On stored data (a replay buffer's transform, which runs :meth:`forward` on
+    each sample) the root flags and those under ``"next"`` are both rewritten:
+    ``("next", "terminated")`` / ``("next", "done")`` are the ones that end a
+    transition.
+
+    Args:
+        in_keys (sequence of NestedKey, optional): the terminated entries to
+            clear, one per group. Defaults to every terminated key of the parent
+            env (``"terminated"`` where there is no env).
 
     Examples:
         >>> from torchrl.envs import Compose, TransformedEnv
@@ -41,39 +61,50 @@ class IgnoreTerminations(Transform):
         (torch.Size([50]), False, True)
     """
 
-    def __init__(self) -> None:
-        super().__init__()
+    def __init__(self, in_keys: Sequence[NestedKey] | None = None) -> None:
+        super().__init__(in_keys=in_keys)
+        # The groups of in_keys, computed on first use and dropped with the parent.
+        self._groups: list[_Group] | None = None
 
     @property
-    def _groups(self) -> list[tuple[NestedKey | None, NestedKey | None, NestedKey | None]]:
-        """(terminated, truncated, done) keys per done group of the parent, computed once."""
-        groups = self.__dict__.get("_groups_val")
+    def in_keys(self) -> list[NestedKey]:
+        keys = Transform.in_keys.fget(self)
+        if keys:
+            return keys
+        # Not given: the parent's terminated keys, as RewardSum takes the parent's reward keys.
+        parent = self.parent
+        if parent is None:
+            return ["terminated"]
+        return [key for key in parent.done_keys if _last(key) == "terminated"]
+
+    @in_keys.setter
+    def in_keys(self, value: Sequence[NestedKey] | NestedKey | None) -> None:
+        Transform.in_keys.fset(self, value)
+        self._groups = None
+
+    def _group_keys(self) -> list[_Group]:
+        groups = self._groups
         if groups is None:
-            parent = self.parent
-            key_groups = parent.done_keys_groups if parent is not None else [["done", "terminated", "truncated"]]
-            groups = []
-            for group in key_groups:
-                by_name = {_last(k): k for k in group}
-                groups.append((by_name.get("terminated"), by_name.get("truncated"), by_name.get("done")))
-            self.__dict__["_groups_val"] = groups
+            groups = [(key, _sibling(key, "truncated"), _sibling(key, "done")) for key in self.in_keys]
+            # Without a parent the keys may differ from one tensordict to the next: no cache.
+            if self.parent is not None:
+                self._groups = groups
         return groups
 
-    def set_container(self, container) -> None:
+    def set_container(self, container: Transform | EnvBase) -> None:
         super().set_container(container)
-        self.__dict__.pop("_groups_val", None)
+        self._groups = None
 
     def empty_cache(self) -> None:
-        self.__dict__.pop("_groups_val", None)
+        self._groups = None
         super().empty_cache()
 
     def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
-        for term_key, trunc_key, done_key in self._groups:
-            term = next_tensordict.get(term_key, None) if term_key is not None else None
+        for term_key, trunc_key, done_key in self._group_keys():
+            term = next_tensordict.get(term_key, None)
             if term is not None:
                 next_tensordict.set(term_key, torch.zeros_like(term))
-            if done_key is None:
-                continue
-            trunc = next_tensordict.get(trunc_key, None) if trunc_key is not None else None
+            trunc = next_tensordict.get(trunc_key, None)
             if trunc is not None:
                 # A copy, not the same tensor under two keys: in-place writes to one must not hit the other.
                 next_tensordict.set(done_key, trunc.clone())
@@ -83,11 +114,18 @@ class IgnoreTerminations(Transform):
                     next_tensordict.set(done_key, torch.zeros_like(done))
         return next_tensordict
 
-    forward = _call
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """The rule on stored data: the root flags and the ``"next"`` ones."""
+        self._call(tensordict)
+        next_tensordict = tensordict.get("next", None)
+        if next_tensordict is not None:
+            tensordict.set("next", self._call(next_tensordict))
+        return tensordict
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         # Same rule at reset (envs built with allow_done_after_reset may report done there).
         return self._call(tensordict_reset)
 
     def __repr__(self) -> str:
-        return f"{type(self).__name__}()"
+        given = Transform.in_keys.fget(self)
+        return f"{type(self).__name__}({f'in_keys={given}' if given else ''})"

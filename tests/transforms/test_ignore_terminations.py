@@ -79,3 +79,35 @@ def test_reset_and_standalone_forward():
     assert out["done"].tolist() == [[False], [True]]
     assert IgnoreTerminations is IgnoreTerminationsFromTransforms
     assert repr(IgnoreTerminations()) == "IgnoreTerminations()"
+
+
+def test_in_keys_default_to_the_envs_terminated_keys_and_can_be_chosen():
+    """As TorchRL's transforms: ``in_keys`` (the terminated entries to clear) default to every
+    terminated key of the env; given, only those groups change."""
+    env = TransformedEnv(ToyEnv([2, 4], multi_agent=True), IgnoreTerminations())
+    assert sorted(map(str, env.transform.in_keys)) == sorted(map(str, [("agents", "terminated"), "terminated"]))
+    assert IgnoreTerminations().in_keys == ["terminated"]  # no env: the root flag
+    env = TransformedEnv(ToyEnv([2, 4], multi_agent=True), IgnoreTerminations(in_keys=[("agents", "terminated")]))
+    check_env_specs(env)
+    roll = env.rollout(3, break_when_any_done=False)
+    assert not roll["next", "agents", "terminated"].any()
+    assert torch.equal(roll["next", "agents", "done"], roll["next", "agents", "truncated"])
+    assert roll["next", "terminated"][0, 1].all() and roll["next", "done"][0, 1].all()  # the root group: as given
+    assert repr(env.transform) == "IgnoreTerminations(in_keys=[('agents', 'terminated')])"
+
+
+def test_forward_on_a_replay_buffer_sample_clears_the_next_flags():
+    """On stored transitions (a replay buffer's transform runs ``forward`` on each sample) the
+    flags that count are ``("next", "terminated")`` / ``("next", "done")``."""
+    from torchrl.data import LazyTensorStorage, ReplayBuffer, SamplerWithoutReplacement
+
+    roll = ToyEnv([2, 3], terminate=[True, False]).rollout(4, break_when_any_done=False)
+    assert roll["next", "terminated"].any()
+    rb = ReplayBuffer(
+        storage=LazyTensorStorage(8), sampler=SamplerWithoutReplacement(), transform=IgnoreTerminations(), batch_size=8
+    )
+    rb.extend(roll.reshape(-1))
+    sample = rb.sample()
+    assert not sample["next", "terminated"].any() and not sample["terminated"].any()
+    assert torch.equal(sample["next", "done"], sample["next", "truncated"])
+    assert sample["next", "truncated"].any()  # env 1's time limit is kept
