@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import NestedKey, TensorDictBase
 from torchrl.data import Composite
-from torchrl.envs import BatchSizeTransform, EnvBase
+from torchrl.envs import BatchSizeTransform, EnvBase, Transform
 
 __all__ = ["CPUUnbatch"]
 
@@ -64,10 +64,13 @@ class CPUUnbatch(BatchSizeTransform):
 
     def __init__(self) -> None:
         super().__init__(reshape_fn=_squeeze_env_dim)
+        # The parent's input keys (actions, state), read on the first step and dropped with the
+        # parent (set_container, empty_cache).
+        self._parent_in_keys_cache: list[NestedKey] | None = None
 
-    def set_container(self, container) -> None:
+    def set_container(self, container: Transform | EnvBase) -> None:
         super().set_container(container)
-        self.__dict__.pop("_parent_in_keys_val", None)
+        self._parent_in_keys_cache = None
         # Fail when the transform is attached, not at the first spec access. Inside a
         # Compose without an env yet there is no parent: transform_output_spec checks then.
         parent = self.parent
@@ -107,19 +110,19 @@ class CPUUnbatch(BatchSizeTransform):
         return super().transform_output_spec(output_spec)
 
     @property
-    def _parent_in_keys(self) -> list:
-        keys = self.__dict__.get("_parent_in_keys_val")
+    def _parent_in_keys(self) -> list[NestedKey]:
+        keys = self._parent_in_keys_cache
         if keys is None:
             parent = self.parent
             if parent is None:
                 return ["action"]
             spec = parent.input_spec
             keys = list(spec["full_action_spec"].keys()) + list(spec["full_state_spec"].keys())
-            self.__dict__["_parent_in_keys_val"] = keys
+            self._parent_in_keys_cache = keys
         return keys
 
     def empty_cache(self) -> None:
-        self.__dict__.pop("_parent_in_keys_val", None)
+        self._parent_in_keys_cache = None
         super().empty_cache()
 
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:

@@ -259,3 +259,19 @@ def test_parallel_env_and_collector():
                 assert ep["return"][i, t].numpy().tobytes() == expected.tobytes()
     finally:
         penv.close(raise_if_closed=False)
+
+
+def test_the_parent_keys_cache_is_a_declared_attribute_dropped_with_the_parent():
+    """What it caches of its parent is a plain attribute, filled on first use and dropped by
+    TorchRL's hooks (``empty_cache``, ``set_container``), as TorchRL's transforms keep theirs."""
+    unbatch = CPUUnbatch()
+    assert unbatch._parent_in_keys_cache is None
+    env = TransformedEnv(ToyEnv([4]), Compose(StepCounter(), unbatch))
+    env.rollout(2)
+    assert unbatch._parent_in_keys_cache == ["action", "step_count"]
+    env.empty_cache()
+    assert unbatch._parent_in_keys_cache is None
+    env.rollout(2)
+    clone = unbatch.clone()
+    TransformedEnv(ToyEnv([4]), clone)
+    assert clone._parent_in_keys_cache is None
