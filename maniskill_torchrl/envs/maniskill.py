@@ -48,8 +48,11 @@ _ALIGN = 16
 
 
 def _canonical_device(device: Any) -> torch.device:
-    """``device`` with an index for CUDA, so that ManiSkill's ``"cuda"`` and TorchRL's
-    ``"cuda:0"`` compare equal; ManiSkill's backend names are read as devices."""
+    """Returns ``device`` with an index for CUDA.
+
+    ManiSkill's ``"cuda"`` and TorchRL's ``"cuda:0"`` then compare equal; ManiSkill's
+    backend names (``"physx_cuda:1"``) are read as devices.
+    """
     if isinstance(device, str):
         name, sep, index = device.partition(":")
         device = _DEVICE_ALIASES.get(name.lower(), name) + sep + index
@@ -111,8 +114,11 @@ def _reuses_buffers(base: Any) -> bool:
 
 
 def _render_frame_shape(base: Any) -> tuple[int, ...]:
-    """``(H, W, 3)`` of one env's ``render()`` frame, from the camera config when
-    there is one camera (several are tiled: only a render tells the layout)."""
+    """Returns ``(H, W, 3)``, the shape of one env's ``render()`` frame.
+
+    It is read from the camera config when there is one camera; several are tiled,
+    and only a render tells the layout.
+    """
     configs = getattr(base, "_human_render_camera_configs", {}) or {}
     if len(configs) == 1:
         (cfg,) = configs.values()
@@ -121,8 +127,10 @@ def _render_frame_shape(base: Any) -> tuple[int, ...]:
 
 
 def _enable_physx_gpu() -> None:
-    """Loads SAPIEN's PhysX GPU library, with an error that says what to do offline
-    (SAPIEN downloads it on first use)."""
+    """Loads SAPIEN's PhysX GPU library.
+
+    SAPIEN downloads it on first use: offline, the error says what to do.
+    """
     import zipfile
     from pathlib import Path
 
@@ -201,8 +209,11 @@ def _space_to_spec(
 def _info_spec(
     infos: Mapping[str, Any], batch_size: torch.Size, device: torch.device
 ) -> Composite:
-    """The tensor entries of a ManiSkill info dict whose leading dims are the batch
-    (python values such as ``reconfigure`` are per-call metadata)."""
+    """Declares the tensor entries of a ManiSkill info dict.
+
+    Only those whose leading dims are the batch: python values such as
+    ``reconfigure`` are per-call metadata.
+    """
     out = Composite(shape=batch_size, device=device)
     for key, value in infos.items():
         if isinstance(value, Mapping):
@@ -223,8 +234,11 @@ def _info_spec(
 
 # --------------------------------------------------------------------------- helpers
 class _ResetSeeds:
-    """After :meth:`set` ``(s)``, :meth:`draw` gives ``s``, then the draws of
-    ``numpy.random.RandomState(s)``; ``None`` until seeded."""
+    """The seeds of the full resets.
+
+    After :meth:`set` ``(s)``, :meth:`draw` gives ``s``, then the draws of
+    ``numpy.random.RandomState(s)``; ``None`` until seeded.
+    """
 
     def __init__(self) -> None:
         self._rng: np.random.RandomState | None = None
@@ -369,8 +383,10 @@ class _MissingActionError(KeyError):
 
 
 class _ClosedEnv:
-    """Takes the ManiSkill env's place after ``close()``: a closed ManiSkill sim
-    fails with unrelated AttributeErrors."""
+    """Takes the ManiSkill env's place after ``close()``.
+
+    A closed ManiSkill sim fails with unrelated AttributeErrors; this says it is closed.
+    """
 
     def __init__(self, name: str) -> None:
         self.name = name
@@ -687,8 +703,7 @@ class ManiSkillWrapper(_EnvWrapper):
 
     @property
     def base_env(self) -> Any:
-        """The env under the gym wrappers (``env.unwrapped``): the ManiSkill
-        ``BaseEnv``."""
+        """The ManiSkill ``BaseEnv``, the env under the gym wrappers."""
         return self._env.unwrapped
 
     @property
@@ -932,8 +947,11 @@ class ManiSkillWrapper(_EnvWrapper):
         return source if self._gather is None else self._gather(source)
 
     def render(self, *args: Any, **kwargs: Any) -> Any:
-        """ManiSkill's ``render()`` (``[B, H, W, 3]`` uint8 for ``rgb_array``) on
-        ``env.device``, copied where ManiSkill renders into a reused buffer."""
+        """Renders the env on ``env.device``.
+
+        ManiSkill's frames (``[B, H, W, 3]`` uint8 for ``rgb_array``), copied where
+        ManiSkill renders into a reused buffer.
+        """
         with self._sim_mode():
             frame = self._env.render(*args, **kwargs)
         if self._copy_out and isinstance(frame, torch.Tensor):
@@ -949,8 +967,10 @@ class ManiSkillWrapper(_EnvWrapper):
         return frame.unsqueeze(0) if frame.ndim == 3 else frame
 
     def _sim_action(self, tensordict: TensorDictBase) -> Any:
-        """The step's action as ManiSkill takes it, or an error that says what is
-        missing or misshaped."""
+        """Returns the step's action as ManiSkill takes it.
+
+        Raises an error that says what is missing or misshaped.
+        """
         action = tensordict.get("action", None)
         if action is None:
             raise self._action_error(tensordict, "action", None)
@@ -995,10 +1015,11 @@ class ManiSkillWrapper(_EnvWrapper):
 
     # --------------------------------------------------------------- saved states
     def get_state(self) -> TensorDictBase:
-        """Every env's sim state (ManiSkill's ``get_state_dict()``: poses and
-        velocities of its actors and articulations, joint positions and velocities;
-        not the controllers' targets) as a TensorDict of this env's batch on
-        ``env.device``.
+        """Returns every env's sim state, a TensorDict of this env's batch.
+
+        ManiSkill's ``get_state_dict()``: the poses and velocities of its actors and
+        articulations, joint positions and velocities; not the controllers' targets.
+        On ``env.device``.
 
         Examples:
             >>> from torchrl.envs import ManiSkillEnv
@@ -1027,8 +1048,7 @@ class ManiSkillWrapper(_EnvWrapper):
         tensordict: TensorDictBase | None = None,
         **kwargs: Any,
     ) -> TensorDictBase:
-        """Resets to saved states: every env, or those of ``tensordict``'s
-        ``"_reset"`` mask.
+        """Resets every env, or those of ``tensordict``'s ``"_reset"`` mask, to a state.
 
         Args:
             scene_state (TensorDictBase or dict): :meth:`get_state`'s layout, one row
@@ -1042,8 +1062,10 @@ class ManiSkillWrapper(_EnvWrapper):
         return self.reset(tensordict, set_state=True, scene_state=scene_state, **kwargs)
 
     def _checked_states(self, states: TensorDictBase | Mapping) -> TensorDictBase:
-        """``states`` as a ``[num_envs]`` TensorDict of :meth:`get_state`'s layout,
-        or an error that names the entry that differs."""
+        """Returns ``states`` as a ``[num_envs]`` TensorDict of the env's state layout.
+
+        Raises an error that names the entry that differs.
+        """
         if not isinstance(states, (TensorDictBase, Mapping)):
             raise TypeError(
                 "scene_state must be a TensorDict or a dict of tensors "
@@ -1110,8 +1132,10 @@ class ManiSkillWrapper(_EnvWrapper):
 
     # --------------------------------------------------------------- misc
     def close(self, *, raise_if_closed: bool = True) -> None:
-        """Closes the ManiSkill env and drops this env's reference to it, so that its
-        scene and SAPIEN's render engine are freed with the last one elsewhere."""
+        """Closes the ManiSkill env and drops this env's reference to it.
+
+        Its scene and SAPIEN's render engine are freed with the last one elsewhere.
+        """
         env = self.__dict__.get("_env")
         if env is not None and not isinstance(env, _ClosedEnv):
             self._env = _ClosedEnv(f"{type(self).__name__}({self._env_name(env)})")
@@ -1213,7 +1237,9 @@ class ManiSkillEnv(ManiSkillWrapper, metaclass=_ManiSkillEnvMeta):
             if k in kwargs
         }
         if wrapper_args.get("from_pixels"):
-            kwargs.setdefault("render_mode", "rgb_array")
+            # An explicit None (a config's default) asks for no render mode either.
+            if kwargs.get("render_mode") is None:
+                kwargs["render_mode"] = "rgb_array"
         super().__init__(**wrapper_args, **kwargs)
 
     def _check_kwargs(self, kwargs: dict) -> None:
@@ -1233,8 +1259,11 @@ class ManiSkillEnv(ManiSkillWrapper, metaclass=_ManiSkillEnvMeta):
         self._checked_batch_size(self._asked_batch_size, num_envs)
 
     def _on_cpu_sim(self, num_envs: int, kwargs: dict) -> bool:
-        """Whether ``gym.make`` gives the CPU sim: ManiSkill's ``"auto"`` is the CPU
-        sim for one env, and for more the GPU sim where there is CUDA."""
+        """Whether ``gym.make`` gives the CPU sim.
+
+        ManiSkill's ``"auto"`` is the CPU sim for one env, and for more the GPU sim
+        where there is CUDA.
+        """
         backend = str(kwargs.get("sim_backend", "auto")).lower()
         if backend == "auto":
             return num_envs == 1 or not torch.cuda.is_available()
