@@ -17,6 +17,7 @@ from torchrl.envs.batched_envs import BatchedEnvBase
 
 from maniskill_torchrl._internal.repeat import check_repeat, keep_where
 from maniskill_torchrl._private import complete_done, entries, env_step, fast_apply, has_names, new_tensordict
+from maniskill_torchrl.envs.hooks import EnvHooks, env_hooks
 
 __all__ = ["ActionRepeat", "any_done", "merge_step"]
 
@@ -240,12 +241,10 @@ class _ParentInfo:
         earlier = transform if isinstance(transform, Compose) else [transform]
         self._repeats = [] if empty else [t for t in earlier if isinstance(t, ActionRepeat)]
         self._base = parent.base_env
-        # Directly on an env that may have its CPU workers repeat actions themselves
-        # (ManiSkillWrapper.request_worker_repeat, which says whether they will): no transform
-        # between would see the inner steps. Looked up on the class: batched and transformed envs
-        # forward unknown attributes to their sub-envs.
-        base_env = self._base if empty else None
-        self.workers = base_env if callable(getattr(type(base_env), "request_worker_repeat", None)) else None
+        # Directly on an env that may have its CPU workers repeat actions themselves (the
+        # EnvHooks protocol's request_worker_repeat, which says whether they will): no transform
+        # between would see the inner steps.
+        self.workers: EnvHooks | None = env_hooks(parent) if empty else None
         self._complete: bool | None = None
 
     def step(self, td: TensorDictBase) -> TensorDictBase:

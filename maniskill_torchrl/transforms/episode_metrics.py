@@ -8,6 +8,7 @@ from torchrl.data import Categorical, Composite, TensorSpec, Unbounded
 from torchrl.envs import EnvBase, Transform, TransformedEnv
 
 from maniskill_torchrl._internal.episode_stats import SUMMATIONS, EpisodeField, EpisodeStats, episode_fields
+from maniskill_torchrl.envs.hooks import env_hooks
 
 __all__ = ["EpisodeMetrics"]
 
@@ -119,11 +120,11 @@ class EpisodeMetrics(Transform):
         )
         self._reward_key = reward_keys[0]
         self._reset_keys = list(parent.reset_keys)
-        # Where the base env keeps the host values of what it moved up (a CPU-sim env on an
-        # accelerator): the numpy summation reads rewards and flags there, not from the device.
-        # Asked of the class: batched envs hand unknown attributes on to their sub-envs.
-        base = _base_env(parent)
-        self._host_value = base.host_value if hasattr(type(base), "host_value") else None
+        # Where the env keeps the host values of what it moved up (a CPU-sim env on an
+        # accelerator, through the EnvHooks protocol): the numpy summation reads rewards and
+        # flags there, not from the device.
+        hooks = env_hooks(parent)
+        self._host_value = None if hooks is None else hooks.host_value
         return self._stats
 
     def to(self, *args, **kwargs) -> EpisodeMetrics:

@@ -18,6 +18,7 @@ from tensordict import TensorDict
 from maniskill_torchrl._internal.episode_stats import EpisodeStats
 from maniskill_torchrl.transforms.action_repeat import any_done, merge_step
 from support.helpers import bits
+from support.toy_env import ToyEnv
 
 
 @pytest.mark.parametrize(
@@ -152,3 +153,41 @@ def test_merge_step_against_per_env_reference(done_before, done_new, seed):
     # the inputs are left untouched
     assert torch.equal(acc["done"].view(-1), torch.tensor(done_before))
     assert (acc == acc0).all() and (new == new0).all()
+
+
+class _HookedToy(ToyEnv):
+    """A toy env implementing the transforms' env protocol (``maniskill_torchrl.envs.hooks``):
+    it records the repeats asked and never repeats in workers."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.requests: list[int] = []
+
+    def request_worker_repeat(self, repeat: int) -> bool:
+        self.requests.append(repeat)
+        return False
+
+    def host_value(self, tensor: torch.Tensor) -> torch.Tensor | None:
+        return None
+
+
+def test_the_transforms_talk_to_envs_through_the_hooks_protocol():
+    """ActionRepeat asks any env implementing ``EnvHooks`` for the workers' repeat (only when
+    directly on it), EpisodeMetrics for host values; a plain env is not asked anything."""
+    from torchrl.envs import Compose, StepCounter, TransformedEnv
+
+    from maniskill_torchrl import ActionRepeat, EpisodeMetrics
+    from maniskill_torchrl.envs.hooks import env_hooks
+
+    env = TransformedEnv(_HookedToy([5, 5]), Compose(ActionRepeat(3), EpisodeMetrics(summation="numpy")))
+    assert env_hooks(env) is env.base_env
+    nxt = env.step(env.reset().set("action", torch.zeros(2, 2)))["next"]
+    assert env.base_env.requests == [3]
+    # The numpy summation reads host values through the hook (it asks on an accelerator only).
+    assert env.transform[1]._host_value == env.base_env.host_value
+    assert nxt["elapsed_steps"].tolist() == [3, 3] and nxt["episode", "episode_len"].tolist() == [1, 1]
+    # A transform in between would miss the inner steps: no request then.
+    env = TransformedEnv(_HookedToy([5, 5]), Compose(StepCounter(), ActionRepeat(3)))
+    env.step(env.reset().set("action", torch.zeros(2, 2)))
+    assert env.base_env.requests == []
+    assert env_hooks(TransformedEnv(ToyEnv([5]))) is None
