@@ -36,7 +36,7 @@ import numpy as np
 
 from benchmarks.machine import machine_info
 
-_PRELOAD = ["torch", "gymnasium", "mani_skill.envs", "maniskill_torchrl._maniskill"]
+_PRELOAD = ["torch", "gymnasium", "mani_skill.envs", "maniskill_torchrl._internal.rendering"]
 
 
 def topology() -> dict:

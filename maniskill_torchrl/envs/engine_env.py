@@ -53,7 +53,7 @@ class ManiSkillWrapper(maniskill.ManiSkillWrapper):
         >>> import mani_skill.envs
         >>> from maniskill_torchrl import ManiSkillWrapper
         >>> env = ManiSkillWrapper(gym.make("PickCube-v1", num_envs=1, obs_mode="state"))
-        >>> env.set_seed(0)
+        >>> _ = env.set_seed(0)
         >>> td = env.rollout(3)
         >>> td["next", "observation"].shape, td["next", "success"].shape
         (torch.Size([1, 3, 42]), torch.Size([1, 3]))
@@ -103,6 +103,12 @@ class ManiSkillWrapper(maniskill.ManiSkillWrapper):
             return int(kwargs["max_episode_steps"])
         registered = REGISTERED_ENVS.get(self._workers.spec.id)
         return None if registered is None else registered.max_episode_steps
+
+    def _frame_shape(self, base: Any) -> tuple[int, ...]:
+        # The engine asks one sub-env: rendering every sub-env before a reset fails in ManiSkill.
+        if isinstance(base, CPUVectorEnv):
+            return base.render_frame_shape()
+        return super()._frame_shape(base)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         if self._workers is not None:

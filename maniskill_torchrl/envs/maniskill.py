@@ -517,7 +517,7 @@ class ManiSkillWrapper(_EnvWrapper):
         >>> import mani_skill.envs  # registers the tasks
         >>> from torchrl.envs import ManiSkillWrapper
         >>> env = ManiSkillWrapper(gym.make("PickCube-v1", obs_mode="state"))
-        >>> env.set_seed(0)
+        >>> _ = env.set_seed(0)
         >>> td = env.rollout(3)
         >>> td["next", "observation"].shape, td["next", "success"].shape
         (torch.Size([1, 3, 42]), torch.Size([1, 3]))
@@ -762,7 +762,7 @@ class ManiSkillWrapper(_EnvWrapper):
             obs_spec[self._pixels_key] = Bounded(
                 low=0,
                 high=255,
-                shape=batch + torch.Size(_render_frame_shape(base)),
+                shape=batch + torch.Size(self._frame_shape(base)),
                 dtype=torch.uint8,
                 device=device,
             )
@@ -801,6 +801,10 @@ class ManiSkillWrapper(_EnvWrapper):
         self.full_action_spec = action_spec
         self.reward_spec = reward_spec
         self.full_done_spec = done_spec
+
+    def _frame_shape(self, base: Any) -> tuple[int, ...]:
+        """The ``(H, W, 3)`` of one env's ``render()`` frame, read before any reset."""
+        return _render_frame_shape(base)
 
     def _infos(self, base: Any) -> dict[str, Any]:
         # From get_info(): a probe step or reset would change later seeded resets.

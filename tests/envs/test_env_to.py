@@ -1,6 +1,6 @@
 """``env.to(device)`` on a machine without CUDA: a device that does not exist is refused with the
 fix and leaves the env as it was; the env's own device changes nothing. The moves between the CPU
-and an accelerator run under the CUDA double (``tests/cuda_device_cases.py``)."""
+and an accelerator run under the CUDA double (``tests/gpu/cuda_device_cases.py``)."""
 
 from __future__ import annotations
 

@@ -153,9 +153,9 @@ def test_state_reset_arguments_are_checked():
     env = ManiSkillEnv("MS-CartpoleBalance-v1", obs_mode="state")
     try:
         env.reset(seed=0)
-        with pytest.raises(ValueError, match=r"set_state=True and env_states"):
+        with pytest.raises(ValueError, match=r"set_state=True and scene_state"):
             env.reset(set_state=True)
-        with pytest.raises(ValueError, match=r"set_state=True and env_states"):
+        with pytest.raises(ValueError, match=r"set_state=True and scene_state"):
             env.reset(scene_state=env.get_state())
     finally:
         env.close()

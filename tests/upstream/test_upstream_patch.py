@@ -189,6 +189,22 @@ def test_upstream_tests_pass_on_patched_torchrl(patched):
     assert counts.get("passed", 0) >= 25 and not counts.keys() & {"failed", "error", "errors"}, tail
 
 
+def test_module_examples_run_in_patched_torchrl(patched):
+    """The docstring examples of ``torchrl/envs/libs/maniskill.py`` (``from torchrl.envs import ...``) run
+    there, as TorchRL's doctest job would run them."""
+    proc = _run(
+        [sys.executable, "-m", "pytest", "-p", "no:cacheprovider", "-q", "--doctest-modules",
+         "torchrl/envs/libs/maniskill.py"],
+        cwd=patched,
+        pythonpath=patched,
+        check=False,
+    )  # fmt: skip
+    tail = proc.stdout[-6000:] + proc.stderr[-3000:]
+    assert proc.returncode == 0, tail
+    passed = re.findall(r"(\d+) passed", proc.stdout)
+    assert passed and int(passed[-1]) >= 3, tail  # ManiSkillWrapper, ManiSkillEnv, get_state
+
+
 # ----------------------------------------------------------------------------- the Hydra config
 def _config_defaults(envs_libs: Path) -> dict:
     """``ManiSkillEnvConfig``'s fields and defaults, read from the source (MISSING: no default)."""
