@@ -22,7 +22,6 @@ import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 
-from maniskill_torchrl._host_gather import HostGather
 from maniskill_torchrl._private import new_tensordict
 
 __all__ = ["EPISODE_FIELDS", "SUMMATIONS", "EpisodeField", "EpisodeStats", "NumpyOrderSums", "episode_fields"]
@@ -126,8 +125,12 @@ class EpisodeStats:
         has_fail: bool = True,
         summation: str | None = None,
         native_return: bool = False,
+        gather: Callable[[torch.device], Callable[[dict], dict]] | None = None,
     ) -> None:
         self.batch_size = torch.Size(batch_size)
+        # What moves host-side sums up to an accelerator in one transfer, made for a device (the env
+        # adapter's gather); without it, the sums on an accelerator take the device path.
+        self._make_gather = gather
         self.device = torch.device(device) if device is not None else torch.device("cpu")
         self.has_success = has_success
         self.has_fail = has_fail
@@ -153,8 +156,8 @@ class EpisodeStats:
         # numpy's summation for an env on an accelerator (the CPU sim with device="cuda"): summed
         # on the host from a host-side mirror of the last output (no device read), then moved up
         # in one transfer.
-        self._host = self._numpy is not None and self.device.type != "cpu"
-        self._up = HostGather(self.device) if self._host else None
+        self._host = self._numpy is not None and self.device.type != "cpu" and self._make_gather is not None
+        self._up = self._make_gather(self.device) if self._host else None
         self._mirror: tuple[TensorDictBase, dict] | None = None
 
     def zeros(self) -> TensorDict:

@@ -9,6 +9,7 @@ from torchrl.envs import EnvBase, Transform, TransformedEnv
 
 from maniskill_torchrl._internal.episode_stats import SUMMATIONS, EpisodeField, EpisodeStats, episode_fields
 from maniskill_torchrl.envs.hooks import env_hooks
+from maniskill_torchrl.envs.maniskill import _HostGather
 
 __all__ = ["EpisodeMetrics"]
 
@@ -116,7 +117,12 @@ class EpisodeMetrics(Transform):
         has_success, has_fail = self._flags()
         summation = self.summation if self.summation is not None else _default_summation(parent)
         self._stats = EpisodeStats(
-            parent.batch_size, parent.device, has_success=has_success, has_fail=has_fail, summation=summation
+            parent.batch_size,
+            parent.device,
+            has_success=has_success,
+            has_fail=has_fail,
+            summation=summation,
+            gather=_HostGather,  # the env's own one-transfer move, for sums made on the host
         )
         self._reward_key = reward_keys[0]
         self._reset_keys = list(parent.reset_keys)

@@ -32,7 +32,7 @@ MAX_CHAIN = 7
 LAYERS: list[tuple[str, tuple[str, ...]]] = [
     (
         "helpers",
-        ("errors", "_internal", "_private", "_host_gather"),
+        ("errors", "_internal", "_private"),
     ),
     ("engines", ("engines",)),
     ("envs", ("envs", "parallel")),
