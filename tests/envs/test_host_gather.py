@@ -1,6 +1,7 @@
 """The adapter's host gather (``_HostGather``, ``maniskill_torchrl/envs/maniskill.py``) on its own:
-one copy of a step's host tensors, handed out as views that later calls never write into. Its CUDA side (pinned buffers, events) runs
-under the CUDA double in ``tests/gpu/cuda_device_cases.py``; here the target is the CPU."""
+one copy of a step's host tensors, handed out as views that later calls never write into. Its CUDA
+side (pinned buffers, events) runs under the CUDA double in ``tests/gpu/cuda_device_cases.py``;
+here the target is the CPU."""
 
 from __future__ import annotations
 
