@@ -61,14 +61,11 @@ class ManiSkillWrapper(maniskill.ManiSkillWrapper):
 
     _workers: CPUVectorEnv | None = None
 
-    def _check_frame_skip(self) -> None:
-        if self.frame_skip != 1:
-            raise ValueError(
-                f"frame_skip={self.frame_skip} is not supported: TorchRL's FrameSkipTransform keeps stepping an "
-                "env after its episode ends. Use TransformedEnv(env, ActionRepeat(k)) from "
-                "maniskill_torchrl.transforms, ManiSkill's ActionRepeatWrapper semantics: rewards summed "
-                "over the steps each env really took, its last observation kept."
-            )
+    _frame_skip_fix = (
+        "Use TransformedEnv(env, ActionRepeat(k)) from maniskill_torchrl.transforms, ManiSkill's "
+        "ActionRepeatWrapper semantics: rewards summed over the steps each env really took, its last "
+        "observation kept."
+    )
 
     def _check_kwargs(self, kwargs: dict) -> None:
         env = kwargs.get("env")

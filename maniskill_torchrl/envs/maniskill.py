@@ -601,13 +601,16 @@ class ManiSkillWrapper(_EnvWrapper):
             )
         self._check_options(env)
 
+    # What to use instead of frame_skip, in its error.
+    _frame_skip_fix = (
+        "Use an action-repeat transform that stops at each env's end instead."
+    )
+
     def _check_frame_skip(self) -> None:
         if self.frame_skip != 1:
             raise ValueError(
                 f"frame_skip={self.frame_skip} is not supported: a frame skip keeps "
-                "stepping an env after its episode ends. Use an action-repeat "
-                "transform "
-                "that stops at each env's end instead."
+                f"stepping an env after its episode ends. {self._frame_skip_fix}"
             )
 
     def _check_options(self, env: Any) -> None:
