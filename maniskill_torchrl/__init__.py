@@ -2,6 +2,8 @@
 
 - :class:`ManiSkillEnv` / :class:`ManiSkillWrapper`: ManiSkill tasks as TorchRL envs.
 - :class:`CPUVectorEnv`: N CPU-sim envs, one per process, with the GPU sim's batched API.
+- :class:`ManiSkillAsyncEnvPool` and :class:`AsyncPoolCollector`: the same envs as TorchRL's
+  ``AsyncEnvPool``, collected out of lockstep.
 - :mod:`maniskill_torchrl.transforms`: ``ActionRepeat``, ``CPUUnbatch``,
   ``IgnoreTerminations``, ``EpisodeMetrics`` as TorchRL transforms.
 - :mod:`maniskill_torchrl.wrappers`: drop-in ``CPUGymWrapper`` / ``ActionRepeatWrapper``.
@@ -47,6 +49,8 @@ _EXPORTS = {
     "ManiSkillEnv": "maniskill_torchrl.envs",
     "ManiSkillWrapper": "maniskill_torchrl.envs",
     "CPUVectorEnv": "maniskill_torchrl.engines.cpu_vector",
+    "ManiSkillAsyncEnvPool": "maniskill_torchrl.envs.async_pool",
+    "AsyncPoolCollector": "maniskill_torchrl.async_collector",
     "ActionRepeat": "maniskill_torchrl.transforms",
     "CPUUnbatch": "maniskill_torchrl.transforms",
     "EnvStates": "maniskill_torchrl.transforms",
@@ -58,8 +62,10 @@ _EXPORTS = {
 __all__ = [*_EXPORTS, "__version__"]
 
 if TYPE_CHECKING:
+    from maniskill_torchrl.async_collector import AsyncPoolCollector
     from maniskill_torchrl.engines.cpu_vector import CPUVectorEnv
     from maniskill_torchrl.envs import ManiSkillEnv, ManiSkillWrapper
+    from maniskill_torchrl.envs.async_pool import ManiSkillAsyncEnvPool
     from maniskill_torchrl.errors import RenderDeviceError
     from maniskill_torchrl.transforms import (
         ActionRepeat,

@@ -11,14 +11,16 @@ of the library.
 from __future__ import annotations
 
 import multiprocessing
+import multiprocessing.connection
 import pickle
 from collections.abc import Callable
 from typing import Any
 
-__all__ = ["DONE", "STEP", "WorkerFailure", "WorkerPool"]
+__all__ = ["DONE", "STEP", "STEP_RESET", "WorkerFailure", "WorkerPool"]
 
 # A step crosses a worker's pipe as one byte each way: the parent's wake, the worker's done.
-STEP, DONE = b"s", b"k"
+# STEP_RESET (split-phase engines): step, and reset at once if that step ended the episode.
+STEP, DONE, STEP_RESET = b"s", b"k", b"a"
 
 
 class WorkerFailure(Exception):
@@ -70,6 +72,29 @@ class WorkerPool:
             answer = pipe.recv_bytes()
             if answer != DONE:
                 self._raise(i, answer)
+
+    # ------------------------------------------------------------- split phase
+    def wake_some(self, positions: list[int], message: bytes) -> None:
+        """The workers at ``positions`` get ``message`` (:data:`STEP` or :data:`STEP_RESET`)."""
+        for i in positions:
+            self.pipes[i].send_bytes(message)
+
+    def answered(self, positions: list[int], timeout: float | None) -> list[int]:
+        """Those of ``positions`` whose worker has answered (waits up to ``timeout`` s for one;
+        None: until one has), in ``positions``' order."""
+        pipes = {id(self.pipes[i]): i for i in positions}
+        ready = {pipes[id(c)] for c in multiprocessing.connection.wait([self.pipes[i] for i in positions], timeout)}
+        return [i for i in positions if i in ready]
+
+    def take_done(self, i: int) -> None:
+        """Worker ``i``'s answer to a step: :data:`DONE`, or its failure raised."""
+        answer = self.pipes[i].recv_bytes()
+        if answer != DONE:
+            self._raise(i, answer)
+
+    def take_answer(self, i: int) -> Any:
+        """Worker ``i``'s answer to a pickled command (its value), or its failure raised."""
+        return self._answer(i)
 
     # ------------------------------------------------------------- other calls
     def send(self, i: int, command: str, *args: Any, **kwargs: Any) -> None:

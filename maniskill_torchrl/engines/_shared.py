@@ -7,7 +7,9 @@ batch of results with one copy. Nothing is pickled and nothing is concatenated p
 
 The layout is a flat list of leaves, each ``[N, *shape]`` C-contiguous at an offset aligned to
 64 bytes, so that each leaf is a view of the block with its own dtype. Results come first, then
-actions. Only numpy, torch, gymnasium's spaces and the standard library: the workers load it.
+actions. A split-phase block (``autoreset=True``) has ``2N`` result rows, row ``N + i`` for the
+reset that sub-env ``i`` ran after its episode ended, and one int64 reset seed per sub-env after
+the actions. Only numpy, torch, gymnasium's spaces and the standard library: the workers load it.
 """
 
 from __future__ import annotations
@@ -66,18 +68,30 @@ class Layout:
     (``action_space``: one sub-env's action) lies in a block for ``num_envs`` sub-envs. Picklable:
     the parent sends it to every worker."""
 
-    def __init__(self, result_space: gym.Space, action_space: gym.Space, num_envs: int) -> None:
+    def __init__(
+        self, result_space: gym.Space, action_space: gym.Space, num_envs: int, autoreset: bool = False
+    ) -> None:
         self.num_envs = int(num_envs)
+        self.autoreset = bool(autoreset)
+        #: rows of each result leaf: one per sub-env, and one more for its reset with ``autoreset``
+        self.result_rows = 2 * self.num_envs if self.autoreset else self.num_envs
         offset = 0
         self.results, self.actions = [], []
-        for part, space in ((self.results, result_space), (self.actions, action_space)):
+        for part, space, rows in (
+            (self.results, result_space, self.result_rows),
+            (self.actions, action_space, self.num_envs),
+        ):
             for path, dtype, shape in _leaves(space):
                 offset = -(-offset // _ALIGN) * _ALIGN
-                size = self.num_envs * int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
-                part.append((path, dtype, shape, offset, size, _torch_dtype(dtype)))
+                size = rows * int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+                part.append((path, dtype, shape, offset, size, _torch_dtype(dtype), rows))
                 offset += size
             if part is self.results:
-                self.result_bytes = offset  # what the parent copies per step
+                self.result_bytes = offset  # what the parent copies per lockstep step
+        self.seeds_offset = None
+        if self.autoreset:
+            self.seeds_offset = -(-offset // _ALIGN) * _ALIGN
+            offset = self.seeds_offset + 8 * self.num_envs
         self.nbytes = max(offset, 1)
         self.result_paths = [leaf[0] for leaf in self.results]
         self.action_paths = [leaf[0] for leaf in self.actions]
@@ -85,8 +99,7 @@ class Layout:
     def arrays(self, buf: Any, part: list) -> list[np.ndarray]:
         """``[N, *shape]`` numpy views of ``part``'s leaves over ``buf``."""
         return [
-            np.ndarray((self.num_envs, *shape), dtype, buffer=buf, offset=offset)
-            for _, dtype, shape, offset, _, _ in part
+            np.ndarray((rows, *shape), dtype, buffer=buf, offset=offset) for _, dtype, shape, offset, _, _, rows in part
         ]
 
     def read(self, block: torch.Tensor) -> Any:
@@ -94,8 +107,8 @@ class Layout:
         block's result bytes (``block``: a uint8 tensor over the whole segment)."""
         fresh = block[: self.result_bytes].clone()
         values = [
-            fresh[offset : offset + size].view(dtype).view(self.num_envs, *shape)
-            for _, _, shape, offset, size, dtype in self.results
+            fresh[offset : offset + size].view(dtype).view(rows, *shape)[: self.num_envs]
+            for _, _, shape, offset, size, dtype, rows in self.results
         ]
         return _nest(self.result_paths, values)
 
@@ -111,6 +124,10 @@ class SharedBlock:
         self._shm = shared_memory.SharedMemory(name=name, create=self._owner, size=layout.nbytes)
         self.results = layout.arrays(self._shm.buf, layout.results)
         self.actions = layout.arrays(self._shm.buf, layout.actions)
+        #: split-phase blocks: the seed of each sub-env's next reset after an episode's end (-1: none)
+        self.seeds = None
+        if layout.seeds_offset is not None:
+            self.seeds = np.ndarray((layout.num_envs,), np.int64, buffer=self._shm.buf, offset=layout.seeds_offset)
         if self._owner:
             self.tensor = torch.frombuffer(self._shm.buf, dtype=torch.uint8)
             self.tensor.zero_()
@@ -126,6 +143,21 @@ class SharedBlock:
                 where = f" {'/'.join(path)!r}" if path else ""
                 raise ValueError(f"CPUVectorEnv: action{where} of shape {tuple(src.shape)}, expected {dst.shape}.")
             dst[...] = src
+
+    def write_action_rows(self, rows: np.ndarray, action: Any) -> None:
+        """The ``[k, ...]`` actions (numpy, or a dict of them) of the sub-envs ``rows`` into the block."""
+        for path, dst, src in zip(self.layout.action_paths, self.actions, _flatten(action, self.layout.action_paths)):
+            if src.shape != (len(rows), *dst.shape[1:]):
+                where = f" {'/'.join(path)!r}" if path else ""
+                raise ValueError(
+                    f"CPUVectorEnv: action{where} of shape {tuple(src.shape)} for {len(rows)} sub-envs, expected "
+                    f"{(len(rows), *dst.shape[1:])}."
+                )
+            dst[rows] = src
+
+    def read_rows(self, rows: np.ndarray) -> Any:
+        """The results of the rows ``rows`` as a tree of ``[k, ...]`` torch tensors (copies)."""
+        return _nest(self.layout.result_paths, [torch.from_numpy(a[rows]) for a in self.results])
 
     def action_row(self, index: int) -> Any:
         """Sub-env ``index``'s action: copies (the block is rewritten at the next step)."""

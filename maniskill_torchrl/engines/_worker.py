@@ -31,7 +31,7 @@ import torch
 from maniskill_torchrl._internal.assets import no_asset_prompt
 from maniskill_torchrl._internal.rendering import default_render_backend, make_maniskill, render_frame_shape
 from maniskill_torchrl._internal.sim import maniskill_base_env, wrapper_attr
-from maniskill_torchrl.engines._pool import DONE, STEP
+from maniskill_torchrl.engines._pool import DONE, STEP, STEP_RESET
 
 __all__ = [
     "OBS",
@@ -275,6 +275,9 @@ def serve(conn: Any, make: MakeWorker) -> None:
     - the first reply: ``("ready", result space, action space, render mode)``, or an error;
     - :data:`STEP`: step with this sub-env's row of the block's actions, write its row of the
       results, answer :data:`DONE`;
+    - :data:`STEP_RESET` (a split-phase block): the same, then, if that step ended the episode,
+      reset with the block's seed for this sub-env (-1: unseeded) and write the reset into row
+      ``N + index``;
     - a pickled ``(command, args, kwargs)``: ``attach`` (the block's layout and name), ``reset``
       (its row written, like a step), ``call`` (a method or attribute of the env, its value
       pickled back), ``close``. Each is answered ``("ok", value)``.
@@ -300,6 +303,15 @@ def serve(conn: Any, make: MakeWorker) -> None:
             try:
                 if message == STEP:
                     block.write_row(index, env.step(block.action_row(index))[0])
+                    conn.send_bytes(DONE)
+                    continue
+                if message == STEP_RESET:  # split phase: the episode's next start right after its end
+                    step = env.step(block.action_row(index))[0]
+                    block.write_row(index, step)
+                    if step[TERMINATED] or step[TRUNCATED]:
+                        seed = int(block.seeds[index])
+                        reset = env.reset(seed=seed if seed >= 0 else None)[0]
+                        block.write_row(block.layout.num_envs + index, reset)
                     conn.send_bytes(DONE)
                     continue
                 command, args, kwargs = pickle.loads(message)

@@ -28,8 +28,10 @@ the capabilities this engine declares (:attr:`CPUVectorEnv.returns_copies`,
 
 from __future__ import annotations
 
+import os
 import pickle
-from collections.abc import Mapping
+import time
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import gymnasium as gym
@@ -37,7 +39,7 @@ import numpy as np
 import torch
 
 from maniskill_torchrl._internal.assets import check_assets
-from maniskill_torchrl.engines._pool import WorkerFailure, WorkerPool
+from maniskill_torchrl.engines._pool import STEP, STEP_RESET, WorkerFailure, WorkerPool
 from maniskill_torchrl.engines._shared import Layout, SharedBlock
 from maniskill_torchrl.engines._trace import COLLECT_END, HERE_END, SEND, StepTrace, summarize
 from maniskill_torchrl.engines._worker import (
@@ -54,7 +56,23 @@ from maniskill_torchrl.engines._worker import (
     zeros_tree,
 )
 
-__all__ = ["CPUVectorEnv"]
+__all__ = ["CPUVectorEnv", "in_process_default"]
+
+
+def in_process_default(num_envs: int) -> bool:
+    """Whether sub-env 0 runs in the main process when ``in_process`` is not given: yes, unless
+    this process may use more cores than there are sub-envs (then each sub-env gets a worker
+    and a core, and the main process keeps a core for its own work: policy, TensorDicts).
+
+    On 2 cores at N = 2, sub-env 0 in the main process measures faster (one process fewer to
+    share two cores); on 16 cores at N = 15 the traces had the main process, with its own
+    work plus sub-env 0's sim, as the lockstep's straggler (benchmarks/RESULTS.md).
+    """
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cores = os.cpu_count() or 1
+    return cores <= num_envs
 
 
 class CPUVectorEnv:
@@ -65,9 +83,15 @@ class CPUVectorEnv:
         num_envs (int): sub-envs, one per process.
 
     Keyword Args:
-        in_process (bool): sub-env 0 runs in this process, stepped while the workers step
-            the others (default: ``num_envs - 1`` worker processes). False: ``num_envs``
-            workers, and this process only waits for them.
+        in_process (bool or None): True: sub-env 0 runs in this process, stepped while the
+            workers step the others (``num_envs - 1`` worker processes). False: ``num_envs``
+            workers, and this process only waits for them. None (default): decided by the
+            machine, :func:`in_process_default`: True unless this process may use more cores
+            than there are sub-envs.
+        split_phase (bool): every sub-env in a worker (``in_process`` must not be True), and
+            the split-phase calls :meth:`step_send` / :meth:`step_recv` and
+            :meth:`reset_send` / :meth:`reset_recv` step and reset some sub-envs while the
+            caller goes on, receiving whichever are done (default False).
         context (str): the multiprocessing start method of the workers. ``"forkserver"``
             (default) or ``"spawn"``; ``"fork"`` hangs once SAPIEN is loaded in this process.
         trace_steps (int): keep timestamps of the last ``trace_steps`` steps in shared memory
@@ -88,6 +112,13 @@ class CPUVectorEnv:
     After :meth:`set_repeat` ``(k)`` each ``step`` repeats its action up to ``k`` times in
     every sub-env, which stops at its own episode's end (ManiSkill's ``ActionRepeatWrapper``
     per sub-env): one round trip per ``step``, no physics after an end.
+
+    Split phase (``split_phase=True``): :meth:`step_send` starts a step of some sub-envs and
+    returns at once; :meth:`step_recv` returns the rows of whichever sub-envs have finished,
+    in the order they finished, waiting for at least ``min_get`` of them. With
+    ``autoreset=True``, a sub-env whose step ends its episode resets at once in its worker (with
+    the seed given for it) and :meth:`step_recv` returns that reset too. The lockstep calls
+    (``step``, ``reset``, ``call``...) need every sub-env idle.
 
     Every call into ManiSkill runs under :func:`torch.inference_mode`, sub-env 0's too; only
     numpy copies leave the sub-envs. A failure is raised here, by the call that met it: sub-env
@@ -119,7 +150,8 @@ class CPUVectorEnv:
         env_id: str,
         num_envs: int,
         *,
-        in_process: bool = True,
+        in_process: bool | None = None,
+        split_phase: bool = False,
         context: str = "forkserver",
         trace_steps: int = 0,
         **maniskill_kwargs: Any,
@@ -133,6 +165,14 @@ class CPUVectorEnv:
             raise ValueError("num_envs is the second argument of CPUVectorEnv; do not pass it in maniskill_kwargs.")
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
             raise ValueError(f"CPUVectorEnv: num_envs must be a positive int, got {num_envs!r}.")
+        if split_phase:
+            if in_process:
+                raise ValueError(
+                    "CPUVectorEnv(split_phase=True) runs every sub-env in a worker: leave in_process unset (or False)."
+                )
+            in_process = False
+        elif in_process is None:
+            in_process = in_process_default(int(num_envs))
         maniskill_kwargs.setdefault("sim_backend", "physx_cpu")
         check_assets(env_id, maniskill_kwargs)  # before any worker starts
         #: the ``gym.make`` arguments of every sub-env (what a trajectory file records)
@@ -141,6 +181,13 @@ class CPUVectorEnv:
         self.device = torch.device("cpu")
         self.spec = gym.spec(env_id)
         self._first = 1 if in_process else 0  # the sub-env index of the first worker
+        #: whether sub-env 0 runs in this process
+        self.in_process = bool(in_process)
+        self.split_phase = bool(split_phase)
+        # Split phase: what each busy sub-env was sent ("step" / "reset"), and the sub-envs whose
+        # answer has arrived but was not returned yet (per kind, in arrival order).
+        self._busy: dict[int, str] = {}
+        self._arrived: dict[str, list[int]] = {"step": [], "reset": []}
         self._pool: WorkerPool | None = None
         self._local = None
         self._block: SharedBlock | None = None
@@ -161,7 +208,7 @@ class CPUVectorEnv:
             if self._pool is not None:
                 kinds = self._pool.ready()[0]
             space, self.single_action_space, self.render_mode = kinds
-            self._block = SharedBlock(Layout(space, self.single_action_space, num_envs))
+            self._block = SharedBlock(Layout(space, self.single_action_space, num_envs, autoreset=split_phase))
             if self._pool is not None:
                 self._pool.attach(self._block.layout, self._block.name)
         except (EOFError, OSError) as err:  # a worker died while starting
@@ -204,6 +251,11 @@ class CPUVectorEnv:
         ``here=None``: sub-env 0 does not. The workers' answers are collected even when sub-env
         0 raises, so that none is left pending; a worker that raised or died closes the env."""
         self._check_open(call)
+        if self._busy:
+            raise RuntimeError(
+                f"{self!r}: {call}() steps every sub-env together, and sub-envs {sorted(self._busy)} have a "
+                "split-phase call pending: receive them first (step_recv / reset_recv)."
+            )
         pool = self._pool if send is not None else None
         if pool is not None:
             try:
@@ -242,6 +294,166 @@ class CPUVectorEnv:
             trace.stamp(COLLECT_END)
             trace.count += 1
         return self._read()
+
+    # ---------------------------------------------------------------- split phase
+    def step_send(
+        self,
+        action: torch.Tensor | Mapping[str, torch.Tensor],
+        env_idx: Sequence[int],
+        *,
+        autoreset: bool = False,
+        reset_seeds: Sequence[int | None] | None = None,
+    ) -> None:
+        """Starts a step of the sub-envs ``env_idx`` with their ``[k, ...]`` actions, and returns
+        at once; :meth:`step_recv` returns the results.
+
+        ``autoreset=True``: a sub-env whose step ends its episode (terminated or truncated)
+        resets right away in its worker, with its seed in ``reset_seeds`` (one per sub-env of
+        ``env_idx``; None: ManiSkill's unseeded reset).
+        """
+        rows = self._idle_rows("step_send", env_idx)
+        block = self._block
+        block.write_action_rows(rows, to_numpy(action))
+        if autoreset:
+            seeds = [None] * len(rows) if reset_seeds is None else list(reset_seeds)
+            if len(seeds) != len(rows):
+                raise ValueError(f"step_send: {len(seeds)} reset seeds for {len(rows)} sub-envs.")
+            block.seeds[rows] = [-1 if s is None else int(s) for s in seeds]
+        try:
+            self._pool.wake_some(rows.tolist(), STEP_RESET if autoreset else STEP)
+        except (EOFError, OSError) as err:
+            raise self._worker_failed("step_send", err) from err
+        self._busy.update(dict.fromkeys(rows.tolist(), "step"))
+
+    def step_recv(
+        self,
+        min_get: int = 1,
+        *,
+        max_get: int | None = None,
+        timeout: float | None = None,
+        env_idx: Sequence[int] | None = None,
+    ) -> tuple[np.ndarray, tuple, tuple | None]:
+        """The results of sent steps: ``(env_idx, (obs, reward, terminated, truncated, info),
+        reset)``, each ``[k, ...]``, in sub-env order.
+
+        Waits until at least ``min_get`` have finished (all pending ones if fewer are pending),
+        then returns every finished one, at most ``max_get``; with ``env_idx``, waits for those
+        sub-envs and returns them only. ``timeout``: seconds for the whole
+        call; with fewer than ``min_get`` by then, raises :class:`TimeoutError` and keeps what
+        arrived for the next call. ``reset`` (steps sent with ``autoreset=True``, else None) is
+        ``(done, obs, info)``: the ``[k]`` bool mask of the sub-envs that ended an episode and
+        reset, and their reset's observations and infos, ``[done.sum(), ...]``.
+        """
+        rows = self._receive("step", min_get, max_get, timeout, env_idx)
+        block = self._block
+        step = block.read_rows(rows)
+        reset = None
+        if block.layout.autoreset:
+            done = (step[TERMINATED] | step[TRUNCATED]).numpy()
+            again = block.read_rows(rows[done] + self.num_envs)
+            reset = (torch.from_numpy(done), again[OBS], again[INFO])
+        return rows, (step[OBS], step[REWARD], step[TERMINATED], step[TRUNCATED], step[INFO]), reset
+
+    def reset_send(self, env_idx: Sequence[int], seeds: Sequence[int | None] | None = None) -> None:
+        """Starts a reset of the sub-envs ``env_idx`` (``seeds``: one per sub-env, None for
+        ManiSkill's unseeded reset) and returns at once; :meth:`reset_recv` returns them."""
+        rows = self._idle_rows("reset_send", env_idx)
+        seeds = [None] * len(rows) if seeds is None else list(seeds)
+        if len(seeds) != len(rows):
+            raise ValueError(f"reset_send: {len(seeds)} seeds for {len(rows)} sub-envs.")
+        try:
+            for i, seed in zip(rows.tolist(), seeds):
+                self._pool.send(i, "reset", seed=None if seed is None else int(seed), options=None)
+        except (EOFError, OSError) as err:
+            raise self._worker_failed("reset_send", err) from err
+        self._busy.update(dict.fromkeys(rows.tolist(), "reset"))
+
+    def reset_recv(
+        self,
+        min_get: int = 1,
+        *,
+        max_get: int | None = None,
+        timeout: float | None = None,
+        env_idx: Sequence[int] | None = None,
+    ) -> tuple[np.ndarray, Any, dict]:
+        """The sent resets that are done: ``(env_idx, obs, info)``, ``[k, ...]``; ``min_get``,
+        ``max_get``, ``timeout`` and ``env_idx`` as in :meth:`step_recv`."""
+        rows = self._receive("reset", min_get, max_get, timeout, env_idx)
+        step = self._block.read_rows(rows)
+        return rows, step[OBS], step[INFO]
+
+    @property
+    def pending(self) -> dict[int, str]:
+        """The sub-envs with a split-phase call under way, and which (``"step"``, ``"reset"``)."""
+        return dict(self._busy)
+
+    def _idle_rows(self, call: str, env_idx: Sequence[int]) -> np.ndarray:
+        self._check_open(call)
+        if not self.split_phase:
+            raise RuntimeError(f"{self!r}: {call}() is a split-phase call: make the env with split_phase=True.")
+        rows = np.asarray(torch.as_tensor(env_idx, device="cpu").reshape(-1), dtype=np.int64)
+        if rows.size and (rows.min() < 0 or rows.max() >= self.num_envs):
+            raise IndexError(f"{call}: sub-env indices {rows.tolist()} out of range for {self.num_envs} sub-envs.")
+        if len(set(rows.tolist())) != rows.size:
+            raise ValueError(f"{call}: sub-env indices {rows.tolist()} repeat an index.")
+        busy = [i for i in rows.tolist() if i in self._busy]
+        if busy:
+            raise RuntimeError(
+                f"{call}: sub-envs {busy} still have a {self._busy[busy[0]]} under way: receive it first."
+            )
+        return rows
+
+    def _receive(
+        self, kind: str, min_get: int, max_get: int | None, timeout: float | None, only: Sequence[int] | None
+    ) -> np.ndarray:
+        """Waits for answers of the sub-envs sent ``kind`` (of those in ``only``, if given); returns
+        the rows to hand out (see :meth:`step_recv`), in sub-env order, and marks them idle."""
+        self._check_open(f"{kind}_recv")
+        arrived = self._arrived[kind]
+        sent = [i for i, k in self._busy.items() if k == kind]
+        if only is not None:
+            only = np.asarray(torch.as_tensor(only, device="cpu").reshape(-1)).tolist()
+            missing = [i for i in only if i not in sent]
+            if missing:
+                raise RuntimeError(
+                    f"{self!r}: {kind}_recv(env_idx={only}): sub-envs {missing} have no {kind} under way."
+                )
+            sent, min_get, max_get = only, len(only), len(only)
+        if not sent:
+            raise RuntimeError(f"{self!r}: {kind}_recv() with no {kind} under way: send one first.")
+        need = min(max(int(min_get), 1), len(sent))
+        deadline = None if timeout is None else time.monotonic() + timeout
+        take = self._pool.take_done if kind == "step" else self._pool.take_answer
+        while True:
+            waiting = [i for i in sent if i not in arrived]
+            got = len(sent) - len(waiting)
+            draining = got >= need  # enough: take only what is ready now
+            if not waiting:
+                break
+            if draining:
+                wait = 0.0
+            else:
+                wait = None if deadline is None else max(0.0, deadline - time.monotonic())
+            try:
+                for i in self._pool.answered(waiting, wait):
+                    arrived.append(i)
+                    take(i)
+            except (EOFError, OSError, WorkerFailure) as err:
+                raise self._worker_failed(f"{kind}_recv", err) from getattr(err, "error", None) or err
+            if draining:
+                break
+            got = sum(i in arrived for i in sent)
+            if got < need and deadline is not None and time.monotonic() >= deadline:
+                raise TimeoutError(
+                    f"{kind}_recv: {got} of the {need} sub-envs asked for finished within {timeout} s; "
+                    "what arrived is kept for the next call."
+                )
+        mine = [i for i in arrived if i in sent]  # arrival order
+        taken = mine if max_get is None else mine[: int(max_get)]
+        for i in taken:
+            arrived.remove(i)
+            del self._busy[i]
+        return np.sort(np.asarray(taken, dtype=np.int64))
 
     def trace(self) -> dict:
         """The traced steps (``CPUVectorEnv(..., trace_steps=T)``: the last ``T``) and their summary:

@@ -828,6 +828,20 @@ class ManiSkillWrapper(_EnvWrapper):
         action = self._sim_action(tensordict)
         with self._sim_mode():
             obs, reward, terminated, truncated, info = self._env.step(action)
+        return self._step_tensordict(
+            obs, reward, terminated, truncated, info, self.batch_size
+        )
+
+    def _step_tensordict(
+        self,
+        obs: Any,
+        reward: torch.Tensor,
+        terminated: torch.Tensor,
+        truncated: torch.Tensor,
+        info: Mapping[str, Any],
+        batch_size: torch.Size,
+    ) -> TensorDictBase:
+        """The "next" entries of a step's outputs for ``batch_size`` envs."""
         source = self._to_source(obs, info)
         # float32 rewards for every task (some are bool or float64); with a gather
         # everything stays on the host until its one transfer.
@@ -845,7 +859,7 @@ class ManiSkillWrapper(_EnvWrapper):
                 reward, terminated = reward.unsqueeze(-1), terminated.unsqueeze(-1)
                 truncated, done = truncated.unsqueeze(-1), done.unsqueeze(-1)
         else:
-            shape = self.batch_size + (1,)
+            shape = batch_size + (1,)
             reward, terminated = reward.view(shape), terminated.view(shape)
             truncated, done = truncated.view(shape), done.view(shape)
         source["reward"] = reward
@@ -853,7 +867,17 @@ class ManiSkillWrapper(_EnvWrapper):
         source["truncated"] = truncated
         source["done"] = done
         return TensorDict._new_unsafe(
-            self._on_device(source), batch_size=self.batch_size, device=self.device
+            self._on_device(source), batch_size=batch_size, device=self.device
+        )
+
+    def _reset_tensordict(
+        self, obs: Any, info: Mapping[str, Any], batch_size: torch.Size
+    ) -> TensorDictBase:
+        """The entries of a reset's outputs for ``batch_size`` envs."""
+        return TensorDict._new_unsafe(
+            self._on_device(self._to_source(obs, info)),
+            batch_size=batch_size,
+            device=self.device,
         )
 
     def _step_proc_data(self, next_tensordict_out: TensorDictBase) -> TensorDictBase:
@@ -912,11 +936,7 @@ class ManiSkillWrapper(_EnvWrapper):
             seed = self._seeds.draw()
         with self._sim_mode():
             obs, info = self._env.reset(seed=seed, options=options)
-        return TensorDict._new_unsafe(
-            self._on_device(self._to_source(obs, info)),
-            batch_size=self.batch_size,
-            device=self.device,
-        )
+        return self._reset_tensordict(obs, info, self.batch_size)
 
     def _set_seed(self, seed: int | None) -> None:
         self._seeds.set(seed)

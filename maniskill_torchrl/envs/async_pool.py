@@ -1,0 +1,296 @@
+"""ManiSkill CPU-sim envs as TorchRL's :class:`~torchrl.envs.AsyncEnvPool`, on the split-phase engine.
+
+:class:`ManiSkillAsyncEnvPool` answers TorchRL's asynchronous-env interface
+(``async_step_send`` / ``async_step_recv``, ``async_step_and_maybe_reset_send`` / ``_recv``,
+``async_reset_send`` / ``_recv``, the ``"env_index"`` convention) over one
+:class:`~maniskill_torchrl.CPUVectorEnv` made with ``split_phase=True``: the actions of some envs
+go into their rows of the shared block, and the envs that are done come back, whichever they
+are. The workers stay lean (ManiSkill, the gym shim's repeat, numpy; no TorchRL), and a step
+that ends an episode resets at once in its worker. Each output is a TensorDict of the envs
+received, laid out as :class:`~maniskill_torchrl.ManiSkillEnv` lays out a step, with
+``"env_index"``.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from torchrl.envs import AsyncEnvPool, EnvBase
+
+from maniskill_torchrl.engines.cpu_vector import CPUVectorEnv
+from maniskill_torchrl.envs.engine_env import ManiSkillEnv, ManiSkillWrapper
+
+__all__ = ["ManiSkillAsyncEnvPool"]
+
+
+class ManiSkillAsyncEnvPool(AsyncEnvPool):
+    """``num_envs`` ManiSkill CPU-sim envs, one worker process each, as TorchRL's :class:`~torchrl.envs.AsyncEnvPool`.
+
+    Args:
+        env_name (str): a registered ManiSkill task, e.g. ``"PickCube-v1"``.
+        num_envs (int): the envs of the pool, one worker process each.
+
+    Keyword Args:
+        repeat (int): each step applies its action up to ``repeat`` times in the env's worker,
+            with ManiSkill's ``ActionRepeatWrapper`` semantics (rewards summed, flags OR'ed, the
+            last real step's observation; what :class:`~maniskill_torchrl.transforms.ActionRepeat`
+            gives). Defaults to 1.
+        info_keys (list of str, optional): as in :class:`~maniskill_torchrl.ManiSkillEnv`.
+        **kwargs: ManiSkill's ``gym.make`` arguments (``obs_mode``, ``control_mode``,
+            ``max_episode_steps``...), given to every env.
+
+    Each env of the pool is the env ``ManiSkillEnv(env_name, batch_size=[], **kwargs)`` would
+    make, with the same keys, specs and values: the pool's batch is ``[num_envs]`` and
+    :attr:`env_makers` holds those factories. Seeding: after ``set_seed(s)``, env ``i``'s first
+    reset uses seed ``s + i`` and its later resets the draws of ``numpy.random.RandomState(s +
+    i)``, in order, however the envs' steps interleave; each env therefore equals a lone
+    ManiSkill env (``CPUGymWrapper``) reset with those seeds and given the same actions, bit for
+    bit. Without a seed the resets are ManiSkill's unseeded ones.
+
+    The sync calls (``reset``, ``step``, ``rollout``, a TorchRL ``Collector``) step every env
+    together, as TorchRL's pools do; the asynchronous calls step some and return whichever are
+    done: ``async_step_and_maybe_reset_recv`` returns the transitions and the roots of the next
+    steps, an env whose episode ended already reset there. A worker that fails makes the call
+    raise a ``RuntimeError`` naming its env, and closes the pool. CPU only
+    (``device="cpu"``); pictures come with ``obs_mode="rgb"`` (no ``from_pixels``).
+
+    Examples:
+        >>> import torch
+        >>> from maniskill_torchrl import ManiSkillAsyncEnvPool
+        >>> pool = ManiSkillAsyncEnvPool("PickCube-v1", 2, obs_mode="state")
+        >>> _ = pool.set_seed(0)
+        >>> pool.async_reset_send(env_index=[0, 1])
+        >>> roots = pool.async_reset_recv(min_get=2)
+        >>> roots["action"] = torch.zeros(2, 8)
+        >>> pool.async_step_and_maybe_reset_send(roots, env_index=[0, 1])
+        >>> transitions, next_roots = pool.async_step_and_maybe_reset_recv(min_get=1)
+        >>> transitions["next", "reward"].shape[-1], transitions["env_index"].dtype
+        (1, torch.int64)
+        >>> pool.close()
+    """
+
+    def __init__(
+        self,
+        env_name: str,
+        num_envs: int,
+        *,
+        repeat: int = 1,
+        info_keys: list[str] | None = None,
+        **kwargs: Any,
+    ) -> None:
+        if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
+            raise ValueError(f"ManiSkillAsyncEnvPool: num_envs must be a positive int, got {num_envs!r}.")
+        for key, why in (
+            ("from_pixels", "render with obs_mode='rgb' (pictures in the observation)"),
+            ("device", "the pool is on the CPU: move its outputs with a transform or the collector's device"),
+            ("num_workers", "each env of the pool has its worker already"),
+            ("batch_size", "the pool's batch is [num_envs]"),
+        ):
+            if key in kwargs:
+                raise TypeError(f"ManiSkillAsyncEnvPool does not take {key}=: {why}.")
+        self._maniskill = dict(env_name=env_name, repeat=repeat, info_keys=info_keys, kwargs=kwargs)
+        # The batched env whose specs and layout the pool has: in __dict__, not a submodule.
+        self.__dict__["_inner"] = None
+        single = functools.partial(ManiSkillEnv, env_name, batch_size=[], info_keys=info_keys, **kwargs)
+        super().__init__([single] * int(num_envs), backend="threading", stack="dense")
+
+    # ------------------------------------------------------------------ set-up
+    def _setup(self) -> tuple:
+        from maniskill_torchrl._internal.repeat import check_repeat
+
+        settings = self._maniskill
+        repeat = check_repeat(settings["repeat"])
+        engine = CPUVectorEnv(settings["env_name"], self.num_envs, split_phase=True, **settings["kwargs"])
+        try:
+            if repeat != 1:
+                engine.set_repeat(repeat)
+            self.__dict__["_inner"] = ManiSkillWrapper(engine, info_keys=settings["info_keys"])
+        except BaseException:
+            engine.close()
+            raise
+        self._engine = engine
+        self._next_seed = np.full(self.num_envs, -1, dtype=np.int64)
+        self._rngs: list[np.random.RandomState | None] = [None] * self.num_envs
+        self._sent: dict[int, TensorDictBase] = {}  # what each stepping env was sent, for its transition
+        self._stepping = {"step": set(), "step_reset": set()}
+        return self._inner.output_spec.clone(), self._inner.input_spec.clone()
+
+    # The pool's specs are the batched env's own ([num_envs]); AsyncEnvPool would stack its
+    # children's, which this pool does not have.
+    full_action_spec = EnvBase.full_action_spec
+    full_observation_spec = EnvBase.full_observation_spec
+    full_reward_spec = EnvBase.full_reward_spec
+    full_done_spec = EnvBase.full_done_spec
+    full_state_spec = EnvBase.full_state_spec
+
+    @property
+    def env_batch_sizes(self) -> list[torch.Size]:
+        return [torch.Size([])] * self.num_envs
+
+    def _get_child_specs(self) -> list:
+        return [{"input_spec": self.input_spec[i], "output_spec": self.output_spec[i]} for i in range(self.num_envs)]
+
+    @property
+    def _current_step(self) -> int:
+        return len(self._stepping["step"])
+
+    @property
+    def _current_step_reset(self) -> int:
+        return len(self._stepping["step_reset"])
+
+    # ------------------------------------------------------------------ seeds
+    def _set_seed(self, seed: int | None) -> None:
+        if seed is None:
+            self._next_seed[:] = -1
+            self._rngs = [None] * self.num_envs
+            return
+        self._next_seed[:] = int(seed) + np.arange(self.num_envs)
+        self._rngs = [np.random.RandomState((int(seed) + i) % 2**32) for i in range(self.num_envs)]
+
+    def _seeds(self, env_idx: np.ndarray) -> list[int | None]:
+        """The next reset seed of each env of ``env_idx`` (None: unseeded), not yet used up."""
+        return [None if s < 0 else int(s) for s in self._next_seed[env_idx]]
+
+    def _used_seeds(self, env_idx: np.ndarray) -> None:
+        """The envs of ``env_idx`` have reset: their next reset takes their stream's next draw."""
+        for i in env_idx.tolist():
+            rng = self._rngs[i]
+            if rng is not None:
+                self._next_seed[i] = rng.randint(2**31)
+
+    # ------------------------------------------------------------------ asynchronous calls
+    def _indexed(self, tensordict: TensorDictBase | None, env_index: Any, make_if_none: bool) -> tuple:
+        tensordict, env_idx = self._maybe_make_tensordict(tensordict, env_index, make_if_none)
+        return tensordict, np.asarray(env_idx, dtype=np.int64).reshape(-1)
+
+    def _send_steps(self, tensordict: TensorDictBase, env_index: Any, kind: str) -> None:
+        tensordict, env_idx = self._indexed(tensordict, env_index, False)
+        action = tensordict.get("action", None)
+        if action is None:
+            raise KeyError(
+                f"{self!r}: no 'action' entry in the tensordict sent to step ({sorted(tensordict.keys())}): set "
+                "td['action'] (the policy's output) first."
+            )
+        autoreset = kind == "step_reset"
+        seeds = self._seeds(env_idx) if autoreset else None
+        self._engine.step_send(action, env_idx, autoreset=autoreset, reset_seeds=seeds)
+        for j, i in enumerate(env_idx.tolist()):
+            self._sent[i] = tensordict[j]
+        self._stepping[kind].update(env_idx.tolist())
+
+    def _receive_steps(
+        self, kind: str, min_get: int | None, env_index: Any, max_get: int | None, timeout: float | None
+    ):
+        only = None if env_index is None else np.asarray(env_index, dtype=np.int64).reshape(-1)
+        pending = self._stepping[kind]
+        if only is None:
+            min_get = self.min_get if min_get is None else min_get
+            if min_get > len(pending):
+                raise RuntimeError(f"Cannot await {min_get} steps when only {len(pending)} are being stepped.")
+        rows, step, reset = self._engine.step_recv(
+            1 if only is not None else min_get, max_get=max_get, timeout=timeout, env_idx=only
+        )
+        pending.difference_update(rows.tolist())
+        batch = torch.Size([len(rows)])
+        transitions = torch.stack([self._sent.pop(i) for i in rows.tolist()])
+        index = torch.from_numpy(rows)
+        transitions.set(self._env_idx_key, index)
+        transitions.set("next", self._inner._step_tensordict(*step, batch))
+        return rows, transitions, reset, index
+
+    def async_step_send(self, tensordict: TensorDictBase, env_index: int | list[int] | None = None) -> None:
+        self._send_steps(tensordict, env_index, "step")
+
+    def async_step_recv(
+        self,
+        min_get: int | None = None,
+        env_index: int | None = None,
+        *,
+        max_get: int | None = None,
+        timeout: float | None = None,
+    ) -> TensorDictBase:
+        return self._receive_steps("step", min_get, env_index, max_get, timeout)[1]
+
+    def async_step_and_maybe_reset_send(
+        self, tensordict: TensorDictBase, env_index: int | list[int] | None = None
+    ) -> None:
+        self._send_steps(tensordict, env_index, "step_reset")
+
+    def async_step_and_maybe_reset_recv(
+        self,
+        min_get: int | None = None,
+        env_index: int | list[int] | None = None,
+        *,
+        max_get: int | None = None,
+        timeout: float | None = None,
+    ) -> tuple[TensorDictBase, TensorDictBase]:
+        rows, transitions, (done, obs, info), index = self._receive_steps(
+            "step_reset", min_get, env_index, max_get, timeout
+        )
+        roots = self._step_mdp(transitions)
+        roots.set(self._env_idx_key, index)
+        if done.any():
+            self._used_seeds(rows[done.numpy()])
+            restarted = self._inner._reset_tensordict(obs, info, torch.Size([int(done.sum())]))
+            for key in ("done", "terminated", "truncated"):
+                restarted.set(key, torch.zeros(restarted.shape + (1,), dtype=torch.bool))
+            roots = roots.clone()  # step_mdp's entries are the transitions' "next" ones
+            roots[done] = restarted
+        return transitions, roots
+
+    def async_reset_send(
+        self,
+        tensordict: TensorDictBase | None = None,
+        env_index: int | list[int] | None = None,
+    ) -> None:
+        tensordict, env_idx = self._indexed(tensordict, env_index, True)
+        seeds = self._seeds(env_idx)
+        self._engine.reset_send(env_idx, seeds)
+        self._used_seeds(env_idx)
+
+    def async_reset_recv(
+        self,
+        min_get: int | None = None,
+        env_index: int | None = None,
+        *,
+        max_get: int | None = None,
+        timeout: float | None = None,
+    ) -> TensorDictBase:
+        only = None if env_index is None else np.asarray(env_index, dtype=np.int64).reshape(-1)
+        min_get = self.min_get if min_get is None else min_get
+        rows, obs, info = self._engine.reset_recv(min_get, max_get=max_get, timeout=timeout, env_idx=only)
+        out = self._inner._reset_tensordict(obs, info, torch.Size([len(rows)]))
+        for key in ("done", "terminated", "truncated"):
+            out.set(key, torch.zeros(out.shape + (1,), dtype=torch.bool))
+        out.set(self._env_idx_key, torch.from_numpy(rows))
+        return out
+
+    # ------------------------------------------------------------------ sync calls
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDictBase:
+        self.async_reset_send(env_index=list(range(self.num_envs)))
+        return self.async_reset_recv(min_get=self.num_envs)
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        self.async_step_send(tensordict, env_index=list(range(self.num_envs)))
+        return self.async_step_recv(min_get=self.num_envs)["next"]
+
+    # ------------------------------------------------------------------ the end
+    def shutdown(self) -> None:
+        if self._inner is not None:
+            self._inner.close(raise_if_closed=False)
+            self.__dict__["_inner"] = None
+
+    def __reduce__(self) -> Any:
+        raise TypeError(
+            "ManiSkillAsyncEnvPool holds worker processes and cannot be pickled: pickle "
+            "functools.partial(ManiSkillAsyncEnvPool, 'PickCube-v1', num_envs, ...) instead."
+        )
+
+    def __repr__(self) -> str:
+        settings = self._maniskill
+        repeat = f", repeat={settings['repeat']}" if settings["repeat"] != 1 else ""
+        return f"ManiSkillAsyncEnvPool({settings['env_name']!r}, num_envs={self.num_envs}{repeat})"
