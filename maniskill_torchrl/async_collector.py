@@ -122,9 +122,7 @@ class AsyncPoolCollector(BaseCollector):
     def _drain(self) -> None:
         """Receives the steps still under way, so that the pool can reset or step in lockstep."""
         pool = self.env
-        if pool.is_closed:
-            return
-        pending = getattr(pool, "_current_step_reset", 0)
+        pending = getattr(pool, "_current_step_reset", 0)  # TorchRL's pools count them there
         if pending:
             pool.async_step_and_maybe_reset_recv(min_get=pending)
 
@@ -138,7 +136,7 @@ class AsyncPoolCollector(BaseCollector):
         self._frames = int(state_dict.get("frames", 0))
 
     def shutdown(self, timeout: float | None = None, close_env: bool = True, raise_on_error: bool = True) -> None:
-        if close_env and not self.env.is_closed:
+        if close_env:
             self.env.close(raise_if_closed=False)
 
     def __repr__(self) -> str:

@@ -178,8 +178,11 @@ class ManiSkillEnv(maniskill.ManiSkillEnv, ManiSkillWrapper):
             process per env, sub-env 0 in this one and the others in workers
             (:class:`~maniskill_torchrl.CPUVectorEnv`), with the same keys, specs and dtypes.
             Defaults to 1.
-        in_process (bool): CPU sim with ``num_envs > 1``: sub-env 0 steps in this process while
-            the workers step the others. False: every sub-env in a worker. Defaults to True.
+        in_process (bool, optional): CPU sim with ``num_envs > 1``: True, sub-env 0 steps in this
+            process while the workers step the others; False, every sub-env in a worker.
+            Defaults to None: decided by the machine
+            (:func:`~maniskill_torchrl.engines.cpu_vector.in_process_default`: in this process
+            unless it may use more cores than there are sub-envs).
         device, batch_size, from_pixels, pixels_only, pixels_key, info_keys, inference_mode,
         num_workers, allow_done_after_reset, **kwargs: as in
             :class:`maniskill_torchrl.envs.maniskill.ManiSkillEnv`. ``render_backend``: SAPIEN
@@ -197,7 +200,7 @@ class ManiSkillEnv(maniskill.ManiSkillEnv, ManiSkillWrapper):
         torch.Size([1, 1])
     """
 
-    def __init__(self, env_name: str, *, num_envs: int = 1, in_process: bool = True, **kwargs: Any) -> None:
+    def __init__(self, env_name: str, *, num_envs: int = 1, in_process: bool | None = None, **kwargs: Any) -> None:
         self._in_process = in_process
         super().__init__(env_name, num_envs=num_envs, **kwargs)
 
