@@ -35,7 +35,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
         ("errors", "_internal", "_private"),
     ),
     ("engines", ("engines",)),
-    ("envs", ("envs", "parallel")),
+    ("envs", ("envs", "parallel", "async_collector")),
     ("transforms and the gym shim", ("transforms", "wrappers")),
     ("data and testing", ("data", "testing")),
     ("recipe", ("pipeline",)),
