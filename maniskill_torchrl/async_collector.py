@@ -84,7 +84,10 @@ class AsyncPoolCollector(BaseCollector):
         self.exploration_type = exploration_type
         self.trajs_per_batch = None
         self._frames = 0
-        self._actions = env.full_action_spec_unbatched if policy is None else None
+        # policy=None: random actions, drawn from the leaf spec (a Composite's rand builds a TensorDict)
+        self._actions = None
+        if policy is None:
+            self._actions = [(key, env.full_action_spec_unbatched[key]) for key in env.action_keys]
 
     def _act(self, roots: TensorDictBase) -> None:
         """The policy's actions for ``roots``, sent to their envs."""
@@ -92,7 +95,8 @@ class AsyncPoolCollector(BaseCollector):
             with torch.no_grad(), set_exploration_type(self.exploration_type):
                 roots = self.policy(roots)
         else:
-            roots.update(self._actions.rand(roots.shape))
+            for key, spec in self._actions:
+                roots.set(key, spec.rand(roots.shape))
         self.env.async_step_and_maybe_reset_send(roots, env_index=roots["env_index"].tolist())
 
     def iterator(self) -> Iterator[TensorDictBase]:

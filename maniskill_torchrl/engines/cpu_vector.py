@@ -383,6 +383,11 @@ class CPUVectorEnv:
         return rows, step[OBS], step[INFO]
 
     @property
+    def closed(self) -> bool:
+        """Whether the env is closed (by :meth:`close`, or after a worker failed)."""
+        return self._closed
+
+    @property
     def pending(self) -> dict[int, str]:
         """The sub-envs with a split-phase call under way, and which (``"step"``, ``"reset"``)."""
         return dict(self._busy)
@@ -580,6 +585,7 @@ class CPUVectorEnv:
         if self._closed:
             return
         self._closed = True
+        self._busy.clear()  # nothing is under way any more
         if self._pool is not None:
             if self._closed_why:  # after a failure: the workers may be anywhere in a call
                 self._pool.stop()

@@ -115,7 +115,9 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         self._engine = engine
         self._next_seed = np.full(self.num_envs, -1, dtype=np.int64)
         self._rngs: list[np.random.RandomState | None] = [None] * self.num_envs
-        self._sent: dict[int, TensorDictBase] = {}  # what each stepping env was sent, for its transition
+        # What each env was sent to step, kept for its transition: one row per env, one indexed write
+        # per send and one indexed read per receive (made on the first send).
+        self._sent: TensorDictBase | None = None
         self._stepping = {"step": set(), "step_reset": set()}
         return self._inner.output_spec.clone(), self._inner.input_spec.clone()
 
@@ -134,13 +136,14 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
     def _get_child_specs(self) -> list:
         return [{"input_spec": self.input_spec[i], "output_spec": self.output_spec[i]} for i in range(self.num_envs)]
 
+    # TorchRL's pools count the steps under way here (none once closed, or after a worker failed).
     @property
     def _current_step(self) -> int:
-        return len(self._stepping["step"])
+        return 0 if self._inner is None or self._engine.closed else len(self._stepping["step"])
 
     @property
     def _current_step_reset(self) -> int:
-        return len(self._stepping["step_reset"])
+        return 0 if self._inner is None or self._engine.closed else len(self._stepping["step_reset"])
 
     # ------------------------------------------------------------------ seeds
     def _set_seed(self, seed: int | None) -> None:
@@ -163,12 +166,27 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
                 self._next_seed[i] = rng.randint(2**31)
 
     # ------------------------------------------------------------------ asynchronous calls
-    def _indexed(self, tensordict: TensorDictBase | None, env_index: Any, make_if_none: bool) -> tuple:
-        tensordict, env_idx = self._maybe_make_tensordict(tensordict, env_index, make_if_none)
-        return tensordict, np.asarray(env_idx, dtype=np.int64).reshape(-1)
+    def _indexed(self, tensordict: TensorDictBase, env_index: Any) -> tuple[TensorDictBase, np.ndarray]:
+        """``tensordict`` as ``[k]`` rows and the env index of each (TorchRL's convention: the
+        ``env_index`` argument, else the ``"env_index"`` entry)."""
+        if env_index is None:
+            env_index = tensordict.get(self._env_idx_key, None)
+            if env_index is None:
+                raise KeyError(f"{self!r}: say which envs these rows are for: env_index=[...] or an 'env_index' entry.")
+            if not isinstance(env_index, torch.Tensor):
+                env_index = env_index.tolist()
+        if isinstance(env_index, int) or (isinstance(env_index, torch.Tensor) and env_index.ndim == 0):
+            if tensordict.ndim == 0:
+                tensordict = tensordict.unsqueeze(0)
+        env_idx = np.asarray(torch.as_tensor(env_index, device="cpu").reshape(-1), dtype=np.int64)
+        if tensordict.shape[:1] != (len(env_idx),):
+            raise ValueError(
+                f"{self!r}: {len(env_idx)} env indices for a tensordict of batch {tuple(tensordict.shape)}."
+            )
+        return tensordict, env_idx
 
     def _send_steps(self, tensordict: TensorDictBase, env_index: Any, kind: str) -> None:
-        tensordict, env_idx = self._indexed(tensordict, env_index, False)
+        tensordict, env_idx = self._indexed(tensordict, env_index)
         action = tensordict.get("action", None)
         if action is None:
             raise KeyError(
@@ -178,8 +196,9 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         autoreset = kind == "step_reset"
         seeds = self._seeds(env_idx) if autoreset else None
         self._engine.step_send(action, env_idx, autoreset=autoreset, reset_seeds=seeds)
-        for j, i in enumerate(env_idx.tolist()):
-            self._sent[i] = tensordict[j]
+        if self._sent is None:
+            self._sent = tensordict[:1].expand(self.num_envs).clone()
+        self._sent[torch.from_numpy(env_idx)] = tensordict  # an entry new to the rows is made there
         self._stepping[kind].update(env_idx.tolist())
 
     def _receive_steps(
@@ -196,8 +215,8 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         )
         pending.difference_update(rows.tolist())
         batch = torch.Size([len(rows)])
-        transitions = torch.stack([self._sent.pop(i) for i in rows.tolist()])
         index = torch.from_numpy(rows)
+        transitions = self._sent[index]
         transitions.set(self._env_idx_key, index)
         transitions.set("next", self._inner._step_tensordict(*step, batch))
         return rows, transitions, reset, index
@@ -247,7 +266,8 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         tensordict: TensorDictBase | None = None,
         env_index: int | list[int] | None = None,
     ) -> None:
-        tensordict, env_idx = self._indexed(tensordict, env_index, True)
+        tensordict, env_idx = self._maybe_make_tensordict(tensordict, env_index, True)
+        env_idx = np.asarray(env_idx, dtype=np.int64).reshape(-1)
         seeds = self._seeds(env_idx)
         self._engine.reset_send(env_idx, seeds)
         self._used_seeds(env_idx)
