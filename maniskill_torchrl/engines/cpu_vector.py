@@ -86,7 +86,7 @@ class CPUVectorEnv:
         in_process (bool or None): True: sub-env 0 runs in this process, stepped while the
             workers step the others (``num_envs - 1`` worker processes). False: ``num_envs``
             workers, and this process only waits for them. None (default): decided by the
-            machine, :func:`in_process_default`: True unless this process may use more cores
+            machine, :func:`~maniskill_torchrl.engines.cpu_vector.in_process_default`: True unless this process may use more cores
             than there are sub-envs.
         split_phase (bool): every sub-env in a worker (``in_process`` must not be True), and
             the split-phase calls :meth:`step_send` / :meth:`step_recv` and
@@ -384,7 +384,7 @@ class CPUVectorEnv:
 
     @property
     def closed(self) -> bool:
-        """Whether the env is closed (by :meth:`close`, or after a worker failed)."""
+        """Whether the env is closed (by ``close()``, or after a worker failed)."""
         return self._closed
 
     @property

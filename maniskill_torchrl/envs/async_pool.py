@@ -45,7 +45,7 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
 
     Each env of the pool is the env ``ManiSkillEnv(env_name, batch_size=[], **kwargs)`` would
     make, with the same keys, specs and values: the pool's batch is ``[num_envs]`` and
-    :attr:`env_makers` holds those factories. Seeding: after ``set_seed(s)``, env ``i``'s first
+    ``env_makers`` holds those factories. Seeding: after ``set_seed(s)``, env ``i``'s first
     reset uses seed ``s + i`` and its later resets the draws of ``numpy.random.RandomState(s +
     i)``, in order, however the envs' steps interleave; each env therefore equals a lone
     ManiSkill env (``CPUGymWrapper``) reset with those seeds and given the same actions, bit for
