@@ -86,8 +86,8 @@ class CPUVectorEnv:
         in_process (bool or None): True: sub-env 0 runs in this process, stepped while the
             workers step the others (``num_envs - 1`` worker processes). False: ``num_envs``
             workers, and this process only waits for them. None (default): decided by the
-            machine, :func:`~maniskill_torchrl.engines.cpu_vector.in_process_default`: True unless this process may use more cores
-            than there are sub-envs.
+            machine (:func:`~maniskill_torchrl.engines.cpu_vector.in_process_default`): True
+            unless this process may use more cores than there are sub-envs.
         split_phase (bool): every sub-env in a worker (``in_process`` must not be True), and
             the split-phase calls :meth:`step_send` / :meth:`step_recv` and
             :meth:`reset_send` / :meth:`reset_recv` step and reset some sub-envs while the
