@@ -149,6 +149,26 @@ def test_batched_cpu_env_with_partial_resets(envs):
     check_env_specs(envs[0])
 
 
+def test_async_pool_serves_sapien_cuda_pictures_on_the_host(envs):
+    """The split-phase workers render with sapien_cuda and send host copies: the pool (CPU only)
+    equals the batched env rendering through ManiSkill's CPU read, pictures included."""
+    from maniskill_torchrl import ManiSkillAsyncEnvPool
+
+    kwargs = {k: v for k, v in KW.items() if k != "sim_backend"}
+    pool = ManiSkillAsyncEnvPool(ENV_ID, 2, **kwargs)
+    envs.append(pool)
+    oracle = _make(envs, num_envs=2, in_process=False, **ORACLE)
+    # up to the first episode's end: the pool seeds each env's next episode by its index
+    # (test_async_pool.py), the batched env by its reset events
+    got, want = [], []
+    for env, out in ((pool, got), (oracle, want)):
+        env.set_seed(7)
+        out.append(env.rollout(4, Scripted(env, _actions(env)), break_when_any_done=False))
+    got, want = got[0].exclude("env_index"), want[0]
+    assert_on_device(got, torch.device("cpu"))
+    assert_tensordict_equal(got, want.to("cpu"))
+
+
 def test_parallel_env_of_singles(envs):
     make = functools.partial(ManiSkillEnv, ENV_ID, batch_size=[], **KW)
     env = ManiSkillParallelEnv(2, make)
