@@ -20,6 +20,7 @@ from mani_skill.utils.wrappers.gymnasium import CPUGymWrapper as _ManiSkillCPUGy
 from tensordict import TensorDict
 
 from maniskill_torchrl._internal.episode_stats import EpisodeField, EpisodeStats
+from maniskill_torchrl._private import entries
 from maniskill_torchrl.wrappers._common import np_unbatch, require_maniskill_env
 
 __all__ = ["CPUGymWrapper"]
@@ -153,9 +154,10 @@ class CPUGymWrapper(_ManiSkillCPUGymWrapper):
         ep = self._running = stats.update(
             self._running, _tensor(reward), _tensor(info.get("success")), _tensor(info.get("fail"))
         )
+        values = entries(ep)  # update's TensorDict is a plain one: its dict, no per-key parsing
         # Key order and python / numpy types as ManiSkill's CPUGymWrapper.
         return {
-            name: ep.get(name).numpy()[0] if as_numpy else ep.get(name).item()
+            name: values[name].numpy()[0] if as_numpy else values[name].item()
             for name, as_numpy in self._layouts[bool(self.ignore_terminations)]
         }
 
