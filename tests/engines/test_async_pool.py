@@ -177,3 +177,19 @@ def test_in_process_is_decided_by_the_cores(monkeypatch, cores, num_envs, expect
     """Sub-env 0 in the main process unless this process may use more cores than there are sub-envs."""
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(cores)), raising=False)
     assert in_process_default(num_envs) is expected
+
+
+def test_a_collector_left_mid_batch_then_closed_leaves_no_process_or_segment():
+    pool = ManiSkillAsyncEnvPool("PickCube-v1", N, **PICK)
+    engine = pool._engine
+    segment, processes = engine._block.name, list(engine._pool.processes)
+    collector = AsyncPoolCollector(pool, frames_per_batch=4)
+    for _ in collector:
+        break  # leaves steps under way: the collector receives them
+    assert engine.pending == {}
+    assert pool.rollout(2)["next", "observation"].shape == (N, 2, 42), "the pool steps in lockstep again"
+    collector.shutdown()
+    for process in processes:
+        process.join(10)
+        assert not process.is_alive()
+    assert not os.path.exists(f"/dev/shm/{segment}")
