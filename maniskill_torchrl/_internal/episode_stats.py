@@ -102,6 +102,11 @@ class EpisodeStats:
         native_return (bool): with ``"numpy"``, keep ``numpy.sum``'s dtype of the task's own
             rewards, as ``CPUGymWrapper`` reports it (bool rewards: int64 ``return`` and float64
             ``reward``; float64 rewards: float64 both): the gym shim's. False (default): float32.
+        arrays (str): ``"torch"`` (default): :meth:`update` takes tensors and returns a TensorDict.
+            ``"numpy"`` (with ``summation="numpy"`` on the CPU): it takes numpy arrays and returns
+            a dict of numpy arrays, the same entries computed by the same code without a tensor
+            op: the gym shim's, whose API is numpy (a torch op on a one-env batch costs
+            microseconds, a numpy one a fraction of that). Only :meth:`update` and :meth:`zeros`.
 
     Examples:
         >>> import torch
@@ -126,6 +131,7 @@ class EpisodeStats:
         summation: str | None = None,
         native_return: bool = False,
         gather: Callable[[torch.device], Callable[[dict], dict]] | None = None,
+        arrays: str = "torch",
     ) -> None:
         self.batch_size = torch.Size(batch_size)
         # What moves host-side sums up to an accelerator in one transfer, made for a device (the env
@@ -143,6 +149,12 @@ class EpisodeStats:
         self.summation = summation
         if native_return and summation != "numpy":
             raise ValueError("native_return=True needs summation='numpy' (numpy.sum's dtypes).")
+        if arrays not in ("torch", "numpy"):
+            raise ValueError(f"arrays={arrays!r}: use 'torch' or 'numpy'.")
+        if arrays == "numpy" and (summation != "numpy" or self.device.type != "cpu"):
+            raise ValueError("arrays='numpy' needs summation='numpy' on the CPU.")
+        #: ``"torch"`` or ``"numpy"``: what :meth:`update` takes and returns
+        self.arrays = arrays
         self._numpy = NumpyOrderSums(self.batch_size, native=native_return) if summation == "numpy" else None
         self._set_host_side()
 
@@ -160,10 +172,12 @@ class EpisodeStats:
         self._up = self._make_gather(self.device) if self._host else None
         self._mirror: tuple[TensorDictBase, dict] | None = None
 
-    def zeros(self) -> TensorDict:
-        """The ``"episode"`` TensorDict of a fresh episode (all zeros), as :meth:`update` lays it out."""
+    def zeros(self) -> TensorDict | dict[str, np.ndarray]:
+        """The ``"episode"`` entries of a fresh episode (all zeros), as :meth:`update` lays them out."""
         b, dev = self.batch_size, self.device
         out = {f.name: torch.zeros(b, dtype=f.dtype, device=dev) for f in self.fields}
+        if self.arrays == "numpy":
+            return {name: value.numpy() for name, value in out.items()}
         out = new_tensordict(out, batch_size=b, device=dev)
         if self._host:
             self._mirror = (out, {f.name: torch.zeros(b, dtype=f.dtype) for f in self.fields})
@@ -210,13 +224,16 @@ class EpisodeStats:
         of a device tensor where they are at hand (an env's
         :meth:`~maniskill_torchrl.ManiSkillWrapper.host_value`), else None: with numpy's
         summation on an accelerator, ``reward``, ``success`` and ``fail`` are read from there
-        rather than from the device.
+        rather than from the device. With ``arrays="numpy"``: numpy arrays in, the entries as a
+        dict of numpy arrays out.
         """
         if self._host:
             return self._update_on_host(previous, reward, success, fail, host)
         if previous is None:
             previous = self.zeros()
         out = self._next(_fields_of(previous), reward, success, fail)
+        if self.arrays == "numpy":
+            return out
         return new_tensordict(out, batch_size=self.batch_size, device=self.device)
 
     def _update_on_host(self, previous, reward, success, fail, host) -> TensorDict:
@@ -253,8 +270,8 @@ class EpisodeStats:
                 out[f.name] = total
             elif kind == "count":
                 out[f.name] = n
-            elif kind == "mean":  # numpy's true division: an int64 sum gives float64
-                out[f.name] = (total if total.is_floating_point() else total.to(torch.float64)) / n
+            elif kind == "mean":
+                out[f.name] = _mean(total, n)
             elif kind == "once":
                 out[f.name] = previous.get(f.name) | flags[f.source]
             else:  # "at_end"
@@ -262,13 +279,23 @@ class EpisodeStats:
         return out
 
 
-def _fields_of(td: TensorDictBase) -> TensorDictBase | dict:
+def _mean(total: torch.Tensor | np.ndarray, n: torch.Tensor | np.ndarray) -> torch.Tensor | np.ndarray:
+    """``total / n`` as numpy's true division of a sum by a python int: a float sum keeps its
+    dtype, an int64 one gives float64. Tensors or numpy arrays: numpy would promote a float32
+    array divided by an int64 one to float64, so ``n`` takes a float sum's dtype first (exact:
+    a count below 2**24; torch's float32 / int64 divides in float32 just so)."""
+    if isinstance(total, np.ndarray):
+        return total / n.astype(total.dtype) if total.dtype.kind == "f" else total / n
+    return (total if total.is_floating_point() else total.to(torch.float64)) / n
+
+
+def _fields_of(td: TensorDictBase | dict) -> TensorDictBase | dict:
     """``td``'s entries by name: a plain TensorDict's own dict (a lookup per entry costs a dict
-    access, not ``TensorDict.get``'s key parsing), any other TensorDict as it is."""
+    access, not ``TensorDict.get``'s key parsing), any other TensorDict (or a dict) as it is."""
     return entries(td) if type(td) is TensorDict else td
 
 
-def _shaped(value: torch.Tensor, shape: torch.Size | tuple[int, ...]) -> torch.Tensor:
+def _shaped(value: torch.Tensor | np.ndarray, shape: torch.Size | tuple[int, ...]) -> torch.Tensor | np.ndarray:
     """``value.reshape(shape)``, or ``value`` itself where it has that shape already (a reshape
     to the same shape still makes a view: microseconds per step on the CPU sim)."""
     return value if value.shape == shape else value.reshape(shape)
@@ -356,15 +383,22 @@ class NumpyOrderSums:
         one this history gave there, the env's return is ``previous + reward`` (see the class
         docstring). None: every env continues the history (a caller that keeps no state). The
         result is float32 (or numpy.sum's dtype with ``native``), shaped as the batch, on
-        ``reward``'s device.
+        ``reward``'s device; all three numpy arrays instead: a numpy array.
         """
-        on_host = reward.is_cpu
         flat = self._flat
-        rewards = _shaped(reward.detach(), flat)
-        dtype = rewards.dtype if self.native else torch.float32
-        if not on_host or rewards.dtype != dtype:
-            rewards = rewards.to("cpu", dtype)
-        rewards = rewards.numpy()
+        as_numpy = isinstance(reward, np.ndarray)
+        if as_numpy:
+            on_host = True
+            rewards = _shaped(reward, flat)
+            if not self.native and rewards.dtype != np.float32:
+                rewards = rewards.astype(np.float32)
+        else:
+            on_host = reward.is_cpu
+            rewards = _shaped(reward.detach(), flat)
+            dtype = rewards.dtype if self.native else torch.float32
+            if not on_host or rewards.dtype != dtype:
+                rewards = rewards.to("cpu", dtype)
+            rewards = rewards.numpy()
         positions = _shaped(position, flat).tolist()
         held = None if previous is None else _shaped(previous, flat).tolist()
         self._fit(max(positions, default=0), rewards.dtype)
@@ -381,5 +415,7 @@ class NumpyOrderSums:
             totals[i] = sums[i, k] = total
             exact[i, k] = follows
             top[i] = k
+        if as_numpy:
+            return _shaped(totals, self.batch_size)
         out = _shaped(torch.from_numpy(totals), self.batch_size)
         return out if on_host else out.to(reward.device)

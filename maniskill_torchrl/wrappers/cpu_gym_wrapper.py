@@ -17,10 +17,8 @@ import torch
 from mani_skill.envs.sapien_env import BaseEnv
 from mani_skill.utils.common import to_numpy
 from mani_skill.utils.wrappers.gymnasium import CPUGymWrapper as _ManiSkillCPUGymWrapper
-from tensordict import TensorDict
 
 from maniskill_torchrl._internal.episode_stats import EpisodeField, EpisodeStats
-from maniskill_torchrl._private import entries
 from maniskill_torchrl.wrappers._common import np_unbatch, require_maniskill_env
 
 __all__ = ["CPUGymWrapper"]
@@ -39,8 +37,9 @@ def _gym_layout(fields: tuple[EpisodeField, ...], ignore_terminations: bool) -> 
     return [(f.name, f.dtype == torch.float32) for f in kept]
 
 
-def _tensor(x: Any) -> torch.Tensor | None:
-    return x if x is None or type(x) is torch.Tensor else torch.as_tensor(x)
+def _array(x: Any) -> np.ndarray | None:
+    """The env's reward / flag as numpy (a CPU tensor's zero-copy view), for the episode statistics."""
+    return x.numpy() if type(x) is torch.Tensor else None if x is None else np.asarray(x)
 
 
 class CPUGymWrapper(_ManiSkillCPUGymWrapper):
@@ -119,7 +118,7 @@ class CPUGymWrapper(_ManiSkillCPUGymWrapper):
         # The checks above replace ManiSkill's asserts, which now pass.
         super().__init__(env, ignore_terminations, record_metrics)
         self._stats: EpisodeStats | None = None
-        self._running: TensorDict | None = None  # the running metrics (None: a fresh episode)
+        self._running: dict[str, np.ndarray] | None = None  # the running metrics (None: a fresh episode)
         self._layouts: dict[bool, list[tuple[str, bool]]] = {}
 
     @property
@@ -149,15 +148,15 @@ class CPUGymWrapper(_ManiSkillCPUGymWrapper):
                 has_fail="fail" in info,
                 summation="numpy",
                 native_return=True,  # ManiSkill's np.sum of the task's own rewards
+                arrays="numpy",  # as ManiSkill's wrapper: numpy in, numpy out, no tensor op
             )
             self._layouts = {ignore: _gym_layout(stats.fields, ignore) for ignore in (False, True)}
         ep = self._running = stats.update(
-            self._running, _tensor(reward), _tensor(info.get("success")), _tensor(info.get("fail"))
+            self._running, _array(reward), _array(info.get("success")), _array(info.get("fail"))
         )
-        values = entries(ep)  # update's TensorDict is a plain one: its dict, no per-key parsing
         # Key order and python / numpy types as ManiSkill's CPUGymWrapper.
         return {
-            name: values[name].numpy()[0] if as_numpy else values[name].item()
+            name: ep[name][0] if as_numpy else ep[name].item()
             for name, as_numpy in self._layouts[bool(self.ignore_terminations)]
         }
 
