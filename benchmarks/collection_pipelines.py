@@ -1,10 +1,19 @@
 """The pipelines ``bench_collection.py`` times, each run in a child process of its own.
 
-``run_child`` builds one pipeline (``gym``, ``batched``, ``parallel[:<options>]``,
-``multisync``; ``bench_collection.py``'s docstring describes each), warms it up untimed,
-collects for the given seconds and reports frames, wall time and CPU time to the parent
-(:func:`alternate.child_result`). ``bench_ray.py`` reuses the worker env, the CPU meter and
-the collector timing.
+``run_child`` builds one pipeline (``gym[:<options>]``, ``batched[:<options>]``,
+``parallel[:<options>]``, ``multisync``, ``async[:auto]``; ``bench_collection.py``'s docstring
+describes each), warms it up untimed, collects for the given seconds and reports frames, wall
+time and CPU time to the parent (:func:`alternate.child_result`), with what it ran
+(:data:`RAN_KEYS`): its torch threads and its workers', the autograd mode of its sims, the
+frame rule. ``bench_ray.py`` reuses the worker env, the CPU meter and the collector timing.
+
+Frames are agent steps for every contender: a sim step taken on an agent's action. A reset is
+never a frame. TorchRL's collectors count agent steps (``step_and_maybe_reset`` resets an ended
+episode in the same call, uncounted); ``AsyncBatchedCollector`` counts transitions, one per agent
+step. Gymnasium's ``AsyncVectorEnv`` (default next-step autoreset) spends one ``step`` call of a
+sub-env on its reset after each episode: ``child_gym`` counts ``N`` per call less the sub-envs
+whose previous step ended their episode (``terminated | truncated``), and reports the ``N`` per
+call it used to credit as ``credited_frames``.
 """
 
 from __future__ import annotations
@@ -19,6 +28,9 @@ from benchmarks.alternate import child_ready, child_result
 ENV_ID = "PickCube-v1"
 EPISODE = 50
 SEED = 0
+#: What each child reports it ran, besides its measurement (shown in bench_collection's table).
+RAN_KEYS = ("main_threads", "worker_threads", "sims", "sub_env0", "frames_rule")
+PROBE_DIR = "BENCH_PROBE_DIR"  # where TorchRL's worker envs write what they run (_worker_env)
 
 
 def _maniskill_kwargs() -> dict:
@@ -33,20 +45,49 @@ def _quiet() -> None:
     warnings.filterwarnings("ignore")
 
 
-def _gym_thunk(repeat: int, threads: int | None = None):
+def _sim_mode(inference: bool) -> str:
+    """How this thread's sim steps run: under inference mode, or autograd's ambient mode."""
+    import torch
+
+    return "inference" if inference else ("grad" if torch.is_grad_enabled() else "no_grad")
+
+
+def _gym_probe(inference: bool) -> dict:
+    """What a gym worker runs (``AsyncVectorEnv.call("bench_probe")``, in the worker's loop thread)."""
+    import torch
+
+    return {"threads": torch.get_num_threads(), "sims": _sim_mode(inference)}
+
+
+def _gym_thunk(repeat: int, threads: int | None = None, inference: bool = False):
+    import functools
+
     import gymnasium as gym
     import mani_skill.envs  # noqa: F401
+    import torch
     from mani_skill.utils.wrappers import ActionRepeatWrapper, CPUGymWrapper
 
     _quiet()
     if threads is not None:  # the thread policy of the library's workers (gym:t1)
-        import torch
-
         torch.set_num_threads(threads)
     env = gym.make(ENV_ID, num_envs=1, **_maniskill_kwargs())
     if repeat > 1:
         env = ActionRepeatWrapper(env, repeat)
-    return CPUGymWrapper(env)
+    env = CPUGymWrapper(env)
+    if inference:  # gym:inf: each call under inference mode, as the library's workers decorate theirs
+
+        class InferenceMode(gym.Wrapper):
+            @torch.inference_mode()
+            def step(self, action):
+                return self.env.step(action)
+
+            @torch.inference_mode()
+            def reset(self, **kwargs):
+                return self.env.reset(**kwargs)
+
+        env = InferenceMode(env)
+    env.bench_probe = functools.partial(_gym_probe, inference)  # an attribute: AsyncVectorEnv.call finds it
+    return env
 
 
 def env_options(opts: dict) -> dict:
@@ -72,8 +113,63 @@ def _worker_env(repeat: int, **env_kwargs):
 
     _quiet()
     env = ManiSkillEnv(ENV_ID, **_maniskill_kwargs(), **env_kwargs)
+    _record_worker(env)
     transforms = ([] if env.batch_size == () else [CPUUnbatch()]) + ([ActionRepeat(repeat)] if repeat > 1 else [])
     return TransformedEnv(env, Compose(*transforms)) if transforms else env
+
+
+def _record_worker(env) -> None:
+    """Writes this process's torch threads and its sim's mode to ``$BENCH_PROBE_DIR/<pid>.json``
+    (read back by :func:`_workers_ran`). TorchRL's workers set their threads before they build
+    the env (``ParallelEnv``, ``AsyncBatchedCollector``), so the count is the one they step with."""
+    import json
+
+    import torch
+
+    where = os.environ.get(PROBE_DIR)
+    if not where:
+        return
+    try:
+        with open(os.path.join(where, f"{os.getpid()}.json"), "w") as f:
+            json.dump({"threads": torch.get_num_threads(), "sims": _torchrl_sims(env)}, f)
+    except OSError:
+        pass
+
+
+def _torchrl_sims(env) -> str:
+    """The mode of a ``ManiSkillEnv``'s sims: the CPU engine runs ManiSkill under inference mode
+    itself; otherwise ``inference_mode=`` says (False: the caller's mode, ``torch.no_grad`` under
+    TorchRL's collectors)."""
+    from torchrl.envs import TransformedEnv
+
+    base = env.base_env if isinstance(env, TransformedEnv) else env  # a ManiSkillEnv's base_env is ManiSkill's
+    engine = getattr(base, "_env", None)
+    if getattr(engine, "runs_inference_mode", False) or getattr(base, "inference_mode", False):
+        return "inference"
+    return "not inference"
+
+
+def _workers_ran() -> tuple[int | list[int] | None, str | None]:
+    """The worker processes' threads and sim modes, from their :func:`_record_worker` files
+    (this process's own files left out: an ``EnvCreator`` or a probe env built here)."""
+    import json
+
+    where = os.environ.get(PROBE_DIR)
+    found = []
+    for name in sorted(os.listdir(where)) if where else []:
+        if name != f"{os.getpid()}.json":
+            try:
+                with open(os.path.join(where, name)) as f:
+                    found.append(json.load(f))
+            except (OSError, ValueError):
+                pass
+    return _one_or_all([r["threads"] for r in found]), _one_or_all([r["sims"] for r in found])
+
+
+def _one_or_all(values: list):
+    """One value when all are equal, else the sorted distinct values; None when there are none."""
+    distinct = sorted(set(values))
+    return None if not distinct else distinct[0] if len(distinct) == 1 else distinct
 
 
 class _CPUMeter:
@@ -155,9 +251,12 @@ def _time_collector(collector, seconds: float, meter: _CPUMeter) -> dict:
 
 def gym_vector_env(n: int, repeat: int, opts: dict | None = None):
     """The gym path's vector env, reset and its action space seeded. Options: ``t1`` (one torch
-    thread in this process and in each worker, as the library's workers and README set),
-    ``noshm`` (``shared_memory=False``: observations pickled through the pipes; gymnasium's
-    default is shared memory)."""
+    thread in this process and in each worker, as the library's workers and README set;
+    without it both keep torch's default, one thread per core), ``inf`` (each worker's
+    ``step`` and ``reset`` under :func:`torch.inference_mode`, as the library's workers run
+    theirs; without it the sims run in autograd's default grad mode), ``noshm``
+    (``shared_memory=False``: observations pickled through the pipes; gymnasium's default is
+    shared memory)."""
     import functools
 
     import gymnasium as gym
@@ -169,7 +268,7 @@ def gym_vector_env(n: int, repeat: int, opts: dict | None = None):
 
         torch.set_num_threads(threads)
     envs = gym.vector.AsyncVectorEnv(
-        [functools.partial(_gym_thunk, repeat, threads)] * n,
+        [functools.partial(_gym_thunk, repeat, threads, "inf" in opts)] * n,
         context="forkserver",
         shared_memory="noshm" not in opts,
     )
@@ -179,24 +278,49 @@ def gym_vector_env(n: int, repeat: int, opts: dict | None = None):
 
 
 def child_gym(n: int, repeat: int, seconds: float, opts: dict) -> dict:
+    """Frames: the sub-env steps that ran the sim. With gymnasium's default next-step autoreset,
+    a sub-env whose step ended its episode spends its next ``step`` call on a reset (its action
+    ignored): that call counts ``N`` less those sub-envs. ``credited_frames`` is the former count,
+    ``N`` per call (25-step agent episodes: 26 credited per 25 agent steps, +4%)."""
+    import numpy as np
+    import torch
+
     meter = _CPUMeter()
     envs = gym_vector_env(n, repeat, opts)
     sample, step = envs.action_space.sample, envs.step
+    mode = str(getattr(getattr(envs, "autoreset_mode", None), "value", "next_step"))
+    next_step = mode.lower() in ("next_step", "nextstep")  # otherwise every call is N agent steps
+    ended = np.zeros(n, dtype=bool)  # the sub-envs whose last step ended their episode
     for _ in range(EPISODE):  # warm-up
-        step(sample())
+        _, _, terminated, truncated, _ = step(sample())
+        ended = terminated | truncated
+    probes = envs.call("bench_probe")
     startup = child_ready()
-    frames = 0
+    calls = resets = 0
     a = meter.snapshot()
     t0 = time.perf_counter()
     while True:
         for _ in range(10):
-            step(sample())
-        frames += 10 * n
+            _, _, terminated, truncated, _ = step(sample())
+            if next_step:
+                resets += int(ended.sum())
+                ended = terminated | truncated
+        calls += 10
         wall = time.perf_counter() - t0
         if wall >= seconds:
             break
     b = meter.snapshot()
-    return {**_measured(frames, wall, a, b), "startup_s": startup}
+    out = {**_measured(calls * n - resets, wall, a, b), "startup_s": startup}
+    out.update(
+        main_threads=torch.get_num_threads(),
+        worker_threads=_one_or_all([p["threads"] for p in probes]),
+        sims=_one_or_all([p["sims"] for p in probes]),
+        sub_env0="worker",
+        frames_rule=f"sim steps: N per step() call less the sub-envs autoreset in it ({mode} autoreset)",
+        credited_frames=calls * n,
+        autoreset_steps=resets,
+    )
+    return out
 
 
 def child_batched(n: int, repeat: int, seconds: float, opts: dict) -> dict:
@@ -209,7 +333,32 @@ def child_batched(n: int, repeat: int, seconds: float, opts: dict) -> dict:
         collector = batched_collector(n, repeat, opts)
     except Exception as err:  # noqa: BLE001 - reported as a skip, e.g. no batched CPU env yet
         return {"skipped": f"ManiSkillEnv({ENV_ID!r}, num_envs={n}) raised {type(err).__name__}: {err}"}
-    return _time_collector(collector, seconds, meter)
+    out = _time_collector(collector, seconds, meter)
+    from torchrl.envs import TransformedEnv
+
+    env = collector.env
+    engine = getattr(env.base_env if isinstance(env, TransformedEnv) else env, "_env", None)
+    in_process = getattr(engine, "in_process", None)  # a CPUVectorEnv (N > 1); None: one env, here
+    # The engine's workers run one torch thread each (engines/_worker.py, MakeWorker); sub-env 0
+    # in this process steps with this process's threads.
+    out.update(_ran(None if in_process is None else 1, _torchrl_sims(env), in_process is not False, _AGENT_STEPS))
+    return out
+
+
+_AGENT_STEPS = "agent steps: the collector's frames (a reset is no frame)"
+
+
+def _ran(worker_threads, sims, sub_env0_here: bool, frames_rule: str) -> dict:
+    """The :data:`RAN_KEYS` of a child: this process's torch threads now, the rest as given."""
+    import torch
+
+    return {
+        "main_threads": torch.get_num_threads(),
+        "worker_threads": worker_threads,
+        "sims": sims,
+        "sub_env0": "main process" if sub_env0_here else "worker",
+        "frames_rule": frames_rule,
+    }
 
 
 def batched_collector(n: int, repeat: int, opts: dict):
@@ -277,7 +426,8 @@ def child_parallel(n: int, repeat: int, seconds: float, opts: dict) -> dict:
     policy, collector_kwargs = collector_options(env, opts)
     collector = Collector(env, policy=policy, frames_per_batch=EPISODE * n, total_frames=-1, **collector_kwargs)
     out = _time_collector(collector, seconds, meter)
-    out["main_threads"] = torch.get_num_threads()
+    threads, sims = _workers_ran()
+    out.update(_ran(threads, sims, False, _AGENT_STEPS))
     return out
 
 
@@ -299,7 +449,10 @@ def child_multisync(n: int, repeat: int, seconds: float, opts: dict) -> dict:
         sync=opts.get("sync", "1") == "1",
     )
     collector.set_seed(SEED)
-    return _time_collector(collector, seconds, meter)
+    out = _time_collector(collector, seconds, meter)
+    threads, sims = _workers_ran()
+    out.update(_ran(threads, sims, False, _AGENT_STEPS))
+    return out
 
 
 def _async_policy(obs_dim: int, act_dim: int):
@@ -337,7 +490,15 @@ def child_async(n: int, repeat: int, seconds: float, opts: dict) -> dict:
     collector = AsyncBatchedCollector(
         create_env_fn=[make] * n, frames_per_batch=EPISODE * n, total_frames=-1, env_backend="multiprocessing", **where
     )
-    return _time_collector(collector, seconds, meter)
+    out = _time_collector(collector, seconds, meter)
+    threads, sims = _workers_ran()
+    out.update(_ran(threads, sims, False, "agent steps: the collector's transitions (a reset is no frame)"))
+    return out
+
+
+# The library's asynchronous path (``async:lib``) goes here, beside ``child_async``: a child that
+# returns ``_time_collector(...)`` updated with ``_ran(...)`` (the keys of RAN_KEYS), with frames
+# counted as agent steps (transitions, resets uncounted), and its entry in CHILDREN below.
 
 
 CHILDREN = {
@@ -356,6 +517,10 @@ def run_child(spec: str, n: int, repeat: int, seconds: float) -> None:
         raise SystemExit(f"unknown pipeline {spec!r}; kinds: {sorted(CHILDREN)}")
     launch = os.environ.get("BENCH_LAUNCH_T")
     t0 = time.perf_counter()
+    import tempfile
+
+    # TorchRL's worker envs write what they run here (_record_worker); set before any worker starts
+    os.environ[PROBE_DIR] = tempfile.mkdtemp(prefix="bench-probe-")
     # start-up, in parts: the interpreter and this script, then the heavy imports (all from a cold
     # start: the process is fresh), then the pipeline's build and warm-up (startup_s, the sum)
     interp = round(time.time() - float(launch), 2) if launch else None
@@ -369,6 +534,9 @@ def run_child(spec: str, n: int, repeat: int, seconds: float) -> None:
         import maniskill_torchrl  # noqa: F401
     imports = round(time.perf_counter() - t0, 2)
     out = CHILDREN[kind](n, repeat, seconds, opts)
+    import shutil
+
+    shutil.rmtree(os.environ[PROBE_DIR], ignore_errors=True)
     out["interpreter_s"], out["imports_s"] = interp, imports
     out["child_s"] = round(time.perf_counter() - t0, 2)
     child_result(**out)

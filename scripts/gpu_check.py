@@ -14,6 +14,7 @@ import contextlib
 import json
 import os
 import signal
+import statistics
 import subprocess
 import sys
 import time
@@ -140,17 +141,24 @@ def sweep_summary(path: Path) -> dict:
         d = json.loads(path.read_text())
     except (OSError, ValueError) as e:
         return {"json": f"missing: {e}"}
-    fps, startup, failed = {}, {}, {}
+    rates, startup, failed, ran = {}, {}, {}, {}
     for one in d.get("runs", []):
         spec, n, r = one["name"].split(" N=")[0], int(one["name"].split("N=")[1].split()[0]), one.get("result") or {}
         if not r or r.get("skipped") or r.get("failed"):
             failed.setdefault(spec, {})[n] = r.get("skipped") or r.get("failed") or "failed"
             continue
-        fps.setdefault(spec, {})[n] = round(r["units"] / r["wall_s"], 1)
-        startup[f"{spec} N={n}"] = {k: r.get(k) for k in ("startup_s", "interpreter_s", "imports_s")}
-    gym = next((v for s, v in fps.items() if s.split(":")[0] == "gym"), {})
+        rates.setdefault(spec, {}).setdefault(n, []).append(r["units"] / r["wall_s"])  # frames: agent steps
+        startup.setdefault(f"{spec} N={n}", []).append({k: r.get(k) for k in ("startup_s", "imports_s")})
+        ran.setdefault(spec, {k: r[k] for k in ("main_threads", "worker_threads", "sims") if k in r})
+    fps = {s: {n: round(statistics.median(v), 1) for n, v in sorted(by_n.items())} for s, by_n in rates.items()}
+    gym = fps.get("gym") or next((v for s, v in fps.items() if s.split(":")[0] == "gym"), {})
     out = {"complete": d.get("complete"), "frames_per_s": fps, "child_startup_s": startup, "not_measured": failed}
+    out["rounds"] = {s: {n: len(v) for n, v in by_n.items()} for s, by_n in rates.items()}
+    out["ran"] = ran  # torch threads main / workers, the sims' mode (benchmarks/bench_collection.py)
     out["ratio_to_gym"] = {s: {n: round(v[n] / gym[n], 2) for n in gym if n in v} for s, v in fps.items() if v != gym}
+    best = {n: max(fps[g][n] for g in ("gym", "gym:t1") if n in fps.get(g, {})) for n in gym}  # the faster gym
+    out["ratio_to_best_gym"] = {s: {n: round(v[n] / best[n], 2) for n in best if n in v} for s, v in fps.items()
+                                if s.split(":")[0] != "gym"}  # fmt: skip
     out["scaling_vs_n_times_n1"] = {s: {n: round(v[n] / n / v[1], 2) for n in v if n > 1} for s, v in fps.items()
                                     if 1 in v}  # fmt: skip
     return out
@@ -164,10 +172,15 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     arg("--local", action="store_true", help="dry run here (make gpu-check): no kit, this Python as it is")
     arg("--budget", type=float, default=450, help="seconds for this call, set-up included (450)")
     arg("--stages", nargs="*", default=["sweep", "copy", "suite", "gpu"], choices=STAGES)
-    arg("--sweep-n", type=int, nargs="+", default=[1, 8, 15])
+    # The sweep (benchmarks/README.md, "GPU kit": ~17 min in all, so it runs by N in calls of its own): all
+    # rounds of one N before the next, the largest N first; it starts no child that would end past its limit.
+    arg("--sweep-n", type=int, nargs="+", default=[15, 8, 4, 1], help="sub-envs, in the order run (15 8 4 1)")
     arg("--sweep-seconds", type=float, default=2.0, help="timed collection per run (2)")
-    arg("--sweep-rounds", type=int, default=1, help="alternating rounds of the sweep (1)")
-    arg("--sweep-pipelines", nargs="+", default=["batched:t1,rp,dev,em"], help="besides gym (async:auto: +60 s)")
+    arg("--sweep-rounds", type=int, default=3, help="alternating rounds of the sweep (3)")
+    # The library's asynchronous path joins as "async:lib" once collection_pipelines.py has it (+1 child per N
+    # and round: ~22 min in all).
+    sweep = ["gym:t1", "batched:t1,rp,dev,em", "async:auto"]
+    arg("--sweep-pipelines", nargs="+", default=sweep, help=f"besides gym ({' '.join(sweep)})")
     arg("--startup-limit", type=float, default=40, help="start-up limit of one benchmark child (40 s)")
     arg("--sweep-s", type=float, default=150, help="sweep limit (150 s)")
     arg("--copy-s", type=float, default=75, help="bench_obs_copy --timing limit (75 s)")
@@ -227,7 +240,7 @@ def main(argv: list[str] | None = None) -> int:
     commands = {
         "sweep": [py, "-m", "benchmarks.bench_collection", "--n", *n, "--repeat", "2", "--rounds",
                   str(args.sweep_rounds), "--seconds", str(args.sweep_seconds), "--pipelines", *args.sweep_pipelines,
-                  "--max-wait", "3", "--retries", "0", "--startup-limit", str(args.startup_limit),
+                  "--order", "n", "--max-wait", "3", "--retries", "0", "--startup-limit", str(args.startup_limit),
                   "--timeout", str(args.startup_limit + args.sweep_seconds + 20), "--out", str(out / "sweep.json")],
         "copy": [py, "-m", "benchmarks.bench_obs_copy", "--timing", "--out", str(out / "device_copy.json")],
         # tests/gpu also holds the CUDA double's test, which runs in the suite as it always did.
@@ -236,6 +249,7 @@ def main(argv: list[str] | None = None) -> int:
         "gpu": pytest + ["tests/gpu", "--ignore=tests/gpu/test_cuda_machine.py", f"--junitxml={out / 'gpu.xml'}"],
         "ceilings": [py, "-m", "benchmarks.bench_ceilings", "--n", *n, "--seconds", "3", "--rounds", "2",
                      "--out", str(out / "ceilings.json"), "--budget"],  # + the stage's limit less 45 s
+        # (the sweep: + --budget, the stage's limit less 30 s: it starts no child that would end later)
     }  # fmt: skip
     physx = probe.get("physx_gpu_library", "no probe")
     limits = {"sweep": args.sweep_s, "copy": args.copy_s, "suite": 1e9, "gpu": args.gpu_s, "ceilings": args.ceilings_s}
@@ -248,7 +262,8 @@ def main(argv: list[str] | None = None) -> int:
             stages[name] = {"status": "skipped", "note": f"{physx}: no GPU sim" if gpu_off else f"{limit:.0f}s left"}
             log(f"stage {name}: {stages[name]}")
             continue
-        cmd = commands[name] + ([str(max(limit - 45, 10))] if name == "ceilings" else [])
+        budget = {"ceilings": [str(max(limit - 45, 10))], "sweep": ["--budget", str(max(limit - 30, 10))]}
+        cmd = commands[name] + budget.get(name, [])
         log(f"stage {name} (limit {limit:.0f}s): {' '.join(cmd)}")
         st, rc, s = run(cmd, limit, env)
         stage = stages[name] = {"status": st, "exit_code": rc, "wall_s": s, "limit_s": round(limit)}
