@@ -24,7 +24,8 @@ Task PickCube-v1, ``obs_mode="state"``, random actions, ``max_episode_steps=50``
 - ``batched:<options>``: the same with settings changed (comma-separated options): ``rp``
   (``policy=RandomPolicy(env.action_spec)``), ``dev`` (``device=env.device``), ``notraj``
   (``track_traj_ids=False``), ``noinf`` (``inference_mode=False``), ``t1`` (one torch thread),
-  ``workers`` (``in_process=False``: every sub-env in a worker process, none in this one),
+  ``workers`` (``in_process=False``: every sub-env in a worker process, none in this one), ``inproc``
+  (``in_process=True``: sub-env 0 in this process; without either, the machine decides),
   ``em`` (``EpisodeMetrics()`` after the repeat). The README's pipeline is ``batched:t1,rp,dev,em``
   with ``--repeat 2``;
 - ``parallel``: ``Collector(ParallelEnv(N, lambda: TransformedEnv(ManiSkillEnv(id,
@@ -48,7 +49,10 @@ Task PickCube-v1, ``obs_mode="state"``, random actions, ``max_episode_steps=50``
   TorchRL's collector without a lockstep (each env stepped as soon as its action is ready), the
   workers' envs ``ManiSkillEnv(id, batch_size=[])`` (-> ``ActionRepeat``), a ``Linear -> Tanh``
   policy; ``async:auto``: ``policy_factory=...`` and ``transport="auto"`` (the workers reach a
-  policy process directly, TorchRL's set-up for process workers).
+  policy process directly, TorchRL's set-up for process workers); ``async:lib``:
+  ``AsyncPoolCollector(ManiSkillAsyncEnvPool(id, N, repeat=r))``, the library's path past lockstep
+  (lean workers, the repeat inside them, random actions; ``min=K``: ``min_get``, ``mlp``: the
+  ``Linear -> Tanh`` policy).
 
 **Frames are agent steps for every contender**: a sim step taken on an agent's action; a reset
 is never a frame. TorchRL's collectors count their frames, agent steps (``step_and_maybe_reset``

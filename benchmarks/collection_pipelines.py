@@ -93,10 +93,13 @@ def _gym_thunk(repeat: int, threads: int | None = None, inference: bool = False)
 def env_options(opts: dict) -> dict:
     """The ``ManiSkillEnv`` keywords that the options ask for: ``noinf`` (``inference_mode=False``),
     ``unb`` (``batch_size=[]``: the workers' envs unbatched by ``ManiSkillEnv`` itself),
-    ``workers`` (``in_process=False``: every sub-env of a batched CPU env in a worker process)."""
+    ``workers`` (``in_process=False``: every sub-env of a batched CPU env in a worker process),
+    ``inproc`` (``in_process=True``: sub-env 0 in this process; without either, the machine decides)."""
     out: dict = {}
     if "workers" in opts:
         out["in_process"] = False
+    if "inproc" in opts:
+        out["in_process"] = True
     if "noinf" in opts:
         out["inference_mode"] = False
     if "unb" in opts:
@@ -472,7 +475,10 @@ def child_async(n: int, repeat: int, seconds: float, opts: dict) -> dict:
     """``AsyncBatchedCollector([make_env] * N, policy=..., env_backend="multiprocessing")``: TorchRL's
     way past lockstep (docs/guides/cpu_performance.md, "Past lockstep"), each worker's env
     ``ManiSkillEnv(id, batch_size=[])`` (-> ActionRepeat), stepped as soon as its action is ready;
-    the policy a batch-agnostic ``Linear -> Tanh`` (``RandomPolicy`` takes one fixed batch)."""
+    the policy a batch-agnostic ``Linear -> Tanh`` (``RandomPolicy`` takes one fixed batch).
+    ``async:lib[,...]`` is the library's path instead (:func:`child_async_lib`)."""
+    if "lib" in opts:
+        return child_async_lib(n, repeat, seconds, opts)
     import functools
 
     import torch
@@ -496,9 +502,29 @@ def child_async(n: int, repeat: int, seconds: float, opts: dict) -> dict:
     return out
 
 
-# The library's asynchronous path (``async:lib``) goes here, beside ``child_async``: a child that
-# returns ``_time_collector(...)`` updated with ``_ran(...)`` (the keys of RAN_KEYS), with frames
-# counted as agent steps (transitions, resets uncounted), and its entry in CHILDREN below.
+def child_async_lib(n: int, repeat: int, seconds: float, opts: dict) -> dict:
+    """``AsyncPoolCollector(ManiSkillAsyncEnvPool(id, N, repeat=r))``: the library's way past lockstep
+    (docs/guides/cpu_performance.md, "Past lockstep"), one lean worker per env (the repeat inside it,
+    no TorchRL there), the policy run on whichever envs are done. Options: ``min=K`` (``min_get``,
+    the envs waited for before the policy runs; default 1), ``mlp`` (the ``Linear -> Tanh`` policy of
+    ``async``; default: random actions, as ``gym`` and ``batched:rp``)."""
+    import torch
+
+    from maniskill_torchrl import AsyncPoolCollector, ManiSkillAsyncEnvPool
+
+    torch.set_num_threads(1)
+    meter = _CPUMeter()
+    pool = ManiSkillAsyncEnvPool(ENV_ID, n, repeat=repeat, **_maniskill_kwargs())
+    pool.set_seed(SEED)
+    policy = None
+    if "mlp" in opts:
+        policy = _async_policy(pool.observation_spec["observation"].shape[-1], pool.action_spec.shape[-1])
+    collector = AsyncPoolCollector(
+        pool, policy, frames_per_batch=EPISODE * n, total_frames=-1, min_get=int(opts.get("min", 1))
+    )
+    out = _time_collector(collector, seconds, meter)
+    out.update(_ran(1, "inference", False, "agent steps: the collector's transitions (a reset is no frame)"))
+    return out
 
 
 CHILDREN = {

@@ -177,9 +177,8 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     arg("--sweep-n", type=int, nargs="+", default=[15, 8, 4, 1], help="sub-envs, in the order run (15 8 4 1)")
     arg("--sweep-seconds", type=float, default=2.0, help="timed collection per run (2)")
     arg("--sweep-rounds", type=int, default=3, help="alternating rounds of the sweep (3)")
-    # The library's asynchronous path joins as "async:lib" once collection_pipelines.py has it (+1 child per N
-    # and round: ~22 min in all).
-    sweep = ["gym:t1", "batched:t1,rp,dev,em", "async:auto"]
+    # The library's asynchronous path, async:lib, makes it ~22 min in all (benchmarks/README.md).
+    sweep = ["gym:t1", "batched:t1,rp,dev,em", "async:auto", "async:lib"]
     arg("--sweep-pipelines", nargs="+", default=sweep, help=f"besides gym ({' '.join(sweep)})")
     arg("--startup-limit", type=float, default=40, help="start-up limit of one benchmark child (40 s)")
     arg("--sweep-s", type=float, default=150, help="sweep limit (150 s)")
