@@ -23,7 +23,12 @@ Scenarios:
 - ``ActionRepeatWrapper(repeat=2)`` and ``(repeat=3)``: batched torch actions,
   a step is one outer step.
 
-Run: ``python -m benchmarks.bench_wrappers [--rounds 30] [--steps 100] [--json out.json]``.
+``--replay`` times the wrappers' own work: the env's outputs (its first 50 steps from the seeded
+reset, recorded once) are replayed, so a step or reset of the env costs a list lookup and the
+physics' CPU time and its noise on a shared machine (milliseconds against the wrappers' tens of
+microseconds) drop out; the ``raw`` row is then the loop alone.
+
+Run: ``python -m benchmarks.bench_wrappers [--rounds 30] [--steps 100] [--replay] [--json out.json]``.
 """
 
 from __future__ import annotations
@@ -72,6 +77,31 @@ def _loop_batched(env, actions, seeds):
     return run
 
 
+class _Replay:
+    """Makes a gym wrapper that replays ``env``'s outputs from a seeded reset (see ``--replay``)."""
+
+    @staticmethod
+    def wrap(env, actions, n: int = 50):
+        import gymnasium as gym
+
+        first = env.reset(seed=SEED)
+        steps = [env.step(torch.as_tensor(a[None])) for a in actions[:n]]
+
+        class Replay(gym.Wrapper):  # a gym.Wrapper: the shims still find the ManiSkill env under it
+            i = 0
+
+            def step(self, action):
+                out = steps[self.i % n]
+                self.i += 1
+                return out
+
+            def reset(self, **kwargs):
+                self.i = 0
+                return first
+
+        return Replay(env)
+
+
 def table(times: dict[str, Result], base: str = "ManiSkill") -> str:
     rows = [
         "| contender | median CPU us/step | median wall us/step | ratio to ManiSkill (paired CPU) "
@@ -88,7 +118,7 @@ def table(times: dict[str, Result], base: str = "ManiSkill") -> str:
     return "\n".join(rows)
 
 
-def scenario(kind: str, steps: int, rounds: int, warmup: int, **kwargs) -> dict[str, Result]:
+def scenario(kind: str, steps: int, rounds: int, warmup: int, replay: bool = False, **kwargs) -> dict[str, Result]:
     import gymnasium as gym
     import mani_skill.envs  # noqa: F401
     from mani_skill.utils import wrappers as ms_wrappers
@@ -97,6 +127,8 @@ def scenario(kind: str, steps: int, rounds: int, warmup: int, **kwargs) -> dict[
 
     env = gym.make("PickCube-v1", num_envs=1, obs_mode="state")  # 50-step episodes
     seeds = list(range(SEED + 1, SEED + 1 + steps))
+    if replay:
+        env = _Replay.wrap(env, make_actions(env.unwrapped.single_action_space, 50, seed=1))
     if kind == "cpu":
         ms = ms_wrappers.CPUGymWrapper(env, **kwargs)
         ours = our_wrappers.CPUGymWrapper(env, **kwargs)
@@ -142,17 +174,19 @@ def main(argv=None) -> int:
     p.add_argument("--warmup", type=int, default=2)
     p.add_argument("--steps", type=int, default=100, help="wrapper steps per contender per round")
     p.add_argument("--only", default=None, help="run the scenarios whose name contains this")
+    p.add_argument("--replay", action="store_true", help="replay the env's outputs: the wrappers' own work")
     p.add_argument("--json", default=None, help="write the per-round times here")
     args = p.parse_args(argv)
 
     torch.set_num_threads(1)
-    print(f"bench_wrappers: PickCube-v1 state, CPU sim, {args.steps} steps x {args.rounds} rounds")
+    replayed = ", env outputs replayed" if args.replay else ""
+    print(f"bench_wrappers: PickCube-v1 state, CPU sim{replayed}, {args.steps} steps x {args.rounds} rounds")
     print(machine_line())
     payload, summary = {}, []
     for name, kind, kwargs in SCENARIOS:
         if args.only and args.only not in name:
             continue
-        res = scenario(kind, args.steps, args.rounds, args.warmup, **kwargs)
+        res = scenario(kind, args.steps, args.rounds, args.warmup, args.replay, **kwargs)
         print(f"\n### {name}\n")
         print(table(res))
         r = paired_ratio(res, "maniskill_torchrl", "ManiSkill")
