@@ -60,9 +60,10 @@ __all__ = ["CPUVectorEnv", "in_process_default"]
 
 
 def in_process_default(num_envs: int) -> bool:
-    """Whether sub-env 0 runs in the main process when ``in_process`` is not given: yes, unless
-    this process may use more cores than there are sub-envs (then each sub-env gets a worker
-    and a core, and the main process keeps a core for its own work: policy, TensorDicts).
+    """Whether sub-env 0 runs in the main process when ``in_process`` is not given: yes for one
+    sub-env (no worker at all), and otherwise unless this process may use more cores than there
+    are sub-envs (then each sub-env gets a worker and a core, and the main process keeps a core
+    for its own work: policy, TensorDicts).
 
     On 2 cores at N = 2, sub-env 0 in the main process measures faster (one process fewer to
     share two cores); on 16 cores at N = 15 the traces had the main process, with its own
@@ -72,7 +73,7 @@ def in_process_default(num_envs: int) -> bool:
         cores = len(os.sched_getaffinity(0))
     except (AttributeError, OSError):
         cores = os.cpu_count() or 1
-    return cores <= num_envs
+    return num_envs == 1 or cores <= num_envs
 
 
 class CPUVectorEnv:

@@ -107,6 +107,17 @@ def test_sync_calls_are_the_lockstep_env(pool, repeat):
     assert (got["env_index"] == torch.arange(N).unsqueeze(-1)).all()
 
 
+def test_torchrls_collector_drives_it_in_lockstep(pool):
+    from torchrl.collectors import Collector
+
+    pool.set_seed(SEED)
+    collector = Collector(pool, None, frames_per_batch=6 * N, total_frames=12 * N)
+    batches = list(collector)
+    collector.shutdown(close_env=False)
+    assert [b.shape for b in batches] == [(N, 6), (N, 6)]
+    assert batches[0]["next", "done"].any(), "5-step episodes end inside a batch of 6"
+
+
 def test_receives_whichever_envs_are_done_and_keeps_them_on_timeout(pool):
     pool.set_seed(SEED)
     roots = pool.reset()
@@ -171,10 +182,11 @@ def test_bad_arguments_say_what_to_do():
 
 @pytest.mark.parametrize(
     ("cores", "num_envs", "expected"),
-    [(2, 2, True), (2, 4, True), (16, 15, False), (16, 8, False), (16, 16, True), (1, 2, True)],
+    [(2, 2, True), (2, 4, True), (16, 15, False), (16, 8, False), (16, 16, True), (1, 2, True), (16, 1, True)],
 )
 def test_in_process_is_decided_by_the_cores(monkeypatch, cores, num_envs, expected):
-    """Sub-env 0 in the main process unless this process may use more cores than there are sub-envs."""
+    """Sub-env 0 in the main process for one sub-env, else unless this process may use more cores than there
+    are sub-envs."""
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(cores)), raising=False)
     assert in_process_default(num_envs) is expected
 
