@@ -11,14 +11,19 @@ VENV        := .venv
 endif
 PYTEST_ARGS ?=
 DEMO_ARGS   ?=
+# pytest-xdist (the `test` extra): WORKERS worker processes, one per core of the CI machine (2). In `make test`
+# a test file runs whole in one worker (loadfile), so that its module fixtures (envs, worker pools, subprocess
+# runs) are built once; the registry's and upstream's tests are independent (load). WORKERS=1: one process.
+WORKERS     ?= 2
+xdist        = $(if $(filter-out 0 1,$(WORKERS)),-n $(WORKERS) --dist $(1))
 
 help:
 	@echo "Targets:"
 	@echo "  make setup   create .venv and install the package (+ test, demo, distributed, docs, maniskill extras); checks Vulkan"
-	@echo "  make test    run the test suite (PYTEST_ARGS=... passed to pytest)"
-	@echo "  make test-upstream  the TorchRL pull request of upstream/ on a copy of the installed torchrl (tests/upstream, ~2 min)"
-	@echo "  make test-cuda-double  the library on a CUDA machine, under the CUDA double (tests/gpu/test_cuda_machine.py, ~1.5 min)"
-	@echo "  make test-registry  every task of ManiSkill's registry whose assets are here (tests/registry)"
+	@echo "  make test    run the test suite, in 2 processes (PYTEST_ARGS=... passed to pytest; WORKERS=1: serially)"
+	@echo "  make test-upstream  the TorchRL pull request of upstream/ on a copy of the installed torchrl (tests/upstream, ~1.5 min)"
+	@echo "  make test-cuda-double  the library on a CUDA machine, under the CUDA double (tests/gpu/test_cuda_machine.py, ~3.5 min)"
+	@echo "  make test-registry  every task of ManiSkill's registry whose assets are here (tests/registry, ~3.5 min)"
 	@echo "               MANISKILL=nightly: against mani-skill-nightly, in .venv-nightly (= make test-nightly)"
 	@echo "  make lint    ruff check + ruff format --check"
 	@echo "  make docs    build the docs site into docs/_build/html (warnings are errors), then run every"
@@ -34,21 +39,21 @@ setup:
 	@MANISKILL=$(MANISKILL) bash scripts/setup.sh
 
 # The CUDA-double cases run in a subprocess of their own (tests/gpu/test_cuda_machine.py, the suite's
-# slowest file): their own target, so that `make test` stays well inside 10 minutes on 2 cores.
+# slowest file): their own target, so that `make test` stays inside 5 minutes on 2 cores.
 test: setup lint
-	$(VENV)/bin/python -m pytest -q --durations=15 tests --ignore=tests/registry --ignore=tests/docs \
+	$(VENV)/bin/python -m pytest -q --durations=15 $(call xdist,loadfile) tests --ignore=tests/registry --ignore=tests/docs \
 		--ignore=tests/gpu/test_cuda_machine.py --ignore=tests/upstream $(PYTEST_ARGS)
 
 # upstream/ (upstream/README.md): the module, exports, config and TorchRL's test file applied to a copy of the
 # installed torchrl, whose test file then runs in a child process.
 test-upstream: setup
-	$(VENV)/bin/python -m pytest -q --durations=5 tests/upstream $(PYTEST_ARGS)
+	$(VENV)/bin/python -m pytest -q --durations=5 $(call xdist,load) tests/upstream $(PYTEST_ARGS)
 
 test-cuda-double: setup
 	$(VENV)/bin/python -m pytest -q --durations=5 tests/gpu/test_cuda_machine.py $(PYTEST_ARGS)
 
 test-registry: setup
-	$(VENV)/bin/python -m pytest -q -rs --durations=10 tests/registry $(PYTEST_ARGS)
+	$(VENV)/bin/python -m pytest -q -rs --durations=10 $(call xdist,load) tests/registry $(PYTEST_ARGS)
 
 test-nightly:
 	@$(MAKE) --no-print-directory test MANISKILL=nightly

@@ -11,15 +11,18 @@ takes for the machine's accelerator: so it never loads in this pytest process.
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import subprocess
 import sys
 
 from support.helpers import ROOT
 
-#: Run together, in one subprocess (one start-up of torch, TorchRL and ManiSkill).
+#: Run together, in one pytest subprocess; with pytest-xdist, each file in a worker of its own (two
+#: start-ups of torch, TorchRL and ManiSkill, side by side on 2 cores), each worker under the double too.
 HERE = ROOT / "tests" / "gpu"
 CASES = [HERE / "cuda_machine_cases.py", HERE / "cuda_device_cases.py"]
+XDIST = ["-n", "2", "--dist", "loadfile"] if importlib.util.find_spec("xdist") else []
 
 
 def subprocess_env() -> dict[str, str]:
@@ -32,7 +35,7 @@ def subprocess_env() -> dict[str, str]:
 
 def test_library_on_a_cuda_machine():
     result = subprocess.run(
-        [sys.executable, "-m", "pytest", "-q", "--tb=short", "--show-capture=no"]
+        [sys.executable, "-m", "pytest", "-q", "--tb=short", "--show-capture=no", *XDIST]
         + ["-p", "no:cacheprovider", "-p", "no:warnings", *map(str, CASES)],
         cwd=ROOT,
         env=subprocess_env(),
