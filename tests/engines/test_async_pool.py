@@ -107,13 +107,17 @@ def test_sync_calls_are_the_lockstep_env(pool, repeat):
     assert (got["env_index"] == torch.arange(N).unsqueeze(-1)).all()
 
 
-def test_torchrls_collector_drives_it_in_lockstep(pool):
+def test_torchrls_collector_drives_it_in_lockstep():
     from torchrl.collectors import Collector
 
+    pool = ManiSkillAsyncEnvPool("PickCube-v1", N, **PICK)  # its own: the Collector's shutdown closes its env
     pool.set_seed(SEED)
     collector = Collector(pool, None, frames_per_batch=6 * N, total_frames=12 * N)
-    batches = list(collector)
-    collector.shutdown(close_env=False)
+    try:
+        batches = list(collector)
+    finally:
+        collector.shutdown()
+        pool.close(raise_if_closed=False)
     assert [b.shape for b in batches] == [(N, 6), (N, 6)]
     assert batches[0]["next", "done"].any(), "5-step episodes end inside a batch of 6"
 
