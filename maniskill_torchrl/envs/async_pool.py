@@ -254,12 +254,17 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         roots.set(self._env_idx_key, index)
         if done.any():
             self._used_seeds(rows[done.numpy()])
-            restarted = self._inner._reset_tensordict(obs, info, torch.Size([int(done.sum())]))
-            for key in ("done", "terminated", "truncated"):
-                restarted.set(key, torch.zeros(restarted.shape + (1,), dtype=torch.bool))
+            restarted = self._restarts(obs, info, int(done.sum()))
             roots = roots.clone()  # step_mdp's entries are the transitions' "next" ones
             roots[done] = restarted
         return transitions, roots
+
+    def _restarts(self, obs: Any, info: Any, count: int) -> TensorDictBase:
+        """The roots of ``count`` episodes' starts: the reset's entries, every done flag False."""
+        out = self._inner._reset_tensordict(obs, info, torch.Size([count]))
+        for key in ("done", "terminated", "truncated"):
+            out.set(key, torch.zeros(count, 1, dtype=torch.bool))
+        return out
 
     def async_reset_send(
         self,
@@ -283,9 +288,7 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         only = None if env_index is None else np.asarray(env_index, dtype=np.int64).reshape(-1)
         min_get = self.min_get if min_get is None else min_get
         rows, obs, info = self._engine.reset_recv(min_get, max_get=max_get, timeout=timeout, env_idx=only)
-        out = self._inner._reset_tensordict(obs, info, torch.Size([len(rows)]))
-        for key in ("done", "terminated", "truncated"):
-            out.set(key, torch.zeros(out.shape + (1,), dtype=torch.bool))
+        out = self._restarts(obs, info, len(rows))
         out.set(self._env_idx_key, torch.from_numpy(rows))
         return out
 
