@@ -24,11 +24,15 @@ backend="process", num_collectors=N)``.
    (``batch_workers``, see :func:`set_batch_policy`): a woken worker no longer preempts the
    parent before it has sent the step command to every worker. Not with a spinning parent: a
    woken batch worker placed on its core would wait for it.
-3. **The start method defaults to ``"spawn"``**, whatever ``multiprocessing``'s global start
-   method says, unless ``mp_start_method`` is given. Python pins that global to ``"fork"`` the
-   first time any process starts (gymnasium's ``AsyncVectorEnv(context="forkserver")``
-   does), and ManiSkill workers forked from a parent that has built a ManiSkill env hang
-   forever (see ``maniskill_torchrl._internal.mp``).
+3. **The start method defaults to ``"forkserver"``** (``"spawn"`` where the platform has no
+   forkserver), whatever ``multiprocessing``'s global start method says, unless
+   ``mp_start_method`` is given, and the forkserver imports TorchRL's worker and ManiSkill's
+   tasks once (:data:`WORKER_IMPORTS`, when this process starts it): a worker forked from it
+   starts without importing them, most of a ``"spawn"`` worker's start (the figures are in
+   RESULTS.md, "Worker start"). Python pins the global method to ``"fork"`` the first time any
+   process starts (gymnasium's ``AsyncVectorEnv(context="forkserver")`` does), and ManiSkill
+   workers forked from a parent that has built a ManiSkill env hang forever (see
+   ``maniskill_torchrl._internal.mp``); the forkserver, started clean, builds no env.
 4. **Forking a parent that holds a SAPIEN renderer fails at once** with a ``RuntimeError``
    that says what to do, instead of hanging (``mp_start_method="fork"`` after a ManiSkill env
    was built in this process).
@@ -52,6 +56,7 @@ Examples:
 
 from __future__ import annotations
 
+import multiprocessing as mp
 import os
 import time
 from collections import deque
@@ -61,9 +66,14 @@ from typing import Any, Literal
 from torchrl.envs import ParallelEnv as _TorchRLParallelEnv
 
 from maniskill_torchrl import _private
-from maniskill_torchrl._internal.mp import check_start_method
+from maniskill_torchrl._internal.mp import check_start_method, preload_forkserver
 
-__all__ = ["ManiSkillParallelEnv", "set_batch_policy", "usable_cores"]
+__all__ = ["ManiSkillParallelEnv", "set_batch_policy", "usable_cores", "WORKER_IMPORTS"]
+
+# What a worker imports before it builds its env: TorchRL's worker loop, the library's env and
+# ManiSkill's tasks. The forkserver imports them once for every worker.
+WORKER_IMPORTS = ("torchrl.envs.batched_envs", "maniskill_torchrl.envs", "mani_skill.envs")
+DEFAULT_START_METHOD = "forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn"
 
 WaitMode = Literal["auto", "sleep", "spin"]
 
@@ -129,8 +139,9 @@ class ManiSkillParallelEnv(_TorchRLParallelEnv):
         batch_workers (bool, optional): put the worker processes under ``SCHED_BATCH`` once
             started (a no-op where the OS has no such policy). Default: when the parent sleeps
             (with a spinning parent a woken batch worker could wait behind it).
-        mp_start_method (str, optional): ``"spawn"`` when not given (TorchRL's documented
-            default, kept even if ``multiprocessing``'s global method is ``"fork"``).
+        mp_start_method (str, optional): ``"forkserver"`` when not given (``"spawn"``, TorchRL's
+            documented default, where the platform has no forkserver), even if
+            ``multiprocessing``'s global method is ``"fork"``.
             ``"fork"`` raises ``RuntimeError`` at start if this process has built a ManiSkill env.
         **kwargs: any other :class:`torchrl.envs.ParallelEnv` argument (``use_buffers``,
             ``num_threads``, ``metadata_from_workers``, ``shutdown_timeout``...).
@@ -164,7 +175,7 @@ class ManiSkillParallelEnv(_TorchRLParallelEnv):
             num_workers,
             create_env_fn,
             create_env_kwargs=create_env_kwargs,
-            mp_start_method="spawn" if mp_start_method is None else mp_start_method,
+            mp_start_method=DEFAULT_START_METHOD if mp_start_method is None else mp_start_method,
             **kwargs,
         )
 
@@ -174,7 +185,10 @@ class ManiSkillParallelEnv(_TorchRLParallelEnv):
         return "sleep" if self._sleeps else "spin"
 
     def _start_workers(self) -> None:
-        check_start_method(_private.start_method(self))
+        method = _private.start_method(self)
+        check_start_method(method)
+        if method == "forkserver":
+            preload_forkserver(WORKER_IMPORTS)
         super()._start_workers()
         if self._batch_workers:
             for worker in _private.workers(self):

@@ -18,13 +18,18 @@ Two facts, measured with ManiSkill 3.0.1 / SAPIEN 3 on Mesa lavapipe:
   ``ParallelEnv`` forks: with a SAPIEN renderer in the parent (gymnasium's AsyncVectorEnv
   builds one env in the parent to read the spaces) the workers hang.
   :func:`prefer_spawn` sets ``"spawn"`` when nothing is set yet, as ``import torchrl`` does.
+
+And one fact of cost: a worker's imports (torch, TorchRL, ManiSkill's tasks) are most of its
+start. :func:`preload_forkserver` has the forkserver import them once; the workers forked from it
+start without them.
 """
 
 from __future__ import annotations
 
 import multiprocessing as mp
+from collections.abc import Sequence
 
-__all__ = ["vulkan_loaded", "prefer_spawn", "FORK_AFTER_RENDERER", "check_start_method"]
+__all__ = ["vulkan_loaded", "prefer_spawn", "preload_forkserver", "FORK_AFTER_RENDERER", "check_start_method"]
 
 FORK_AFTER_RENDERER = (
     "This process has created a SAPIEN renderer (a ManiSkill env was built here), and processes "
@@ -77,3 +82,25 @@ def check_start_method(method: str | None) -> None:
         method = mp.get_start_method(allow_none=True) or "spawn"  # TorchRL's default
     if method == "fork" and vulkan_loaded():
         raise RuntimeError(FORK_AFTER_RENDERER)
+
+
+def preload_forkserver(modules: Sequence[str]) -> bool:
+    """Adds ``modules`` to the preload list of ``multiprocessing``'s forkserver, if it is not running yet.
+
+    Every later ``"forkserver"`` process of this process (the library's workers, TorchRL's
+    ``ParallelEnv(mp_start_method="forkserver")``, gymnasium's ``AsyncVectorEnv(context="forkserver")``)
+    is then forked from a server that has imported them. The modules already listed (the user's, or
+    ``"__main__"``, the default) are kept. Importing ManiSkill does not load SAPIEN's renderer (see
+    above), so the forked workers may build envs. A forkserver already running keeps the imports it
+    has. Returns whether the forkserver will import every one of ``modules``.
+    """
+    from multiprocessing import forkserver
+
+    server = forkserver._forkserver  # the process-wide server behind every "forkserver" context
+    current = list(getattr(server, "_preload_modules", ["__main__"]))
+    if getattr(server, "_forkserver_pid", None) is not None:
+        return all(name in current for name in modules)
+    missing = [name for name in modules if name not in current]
+    if missing:
+        mp.set_forkserver_preload(current + missing)
+    return True

@@ -39,6 +39,7 @@ import numpy as np
 import torch
 
 from maniskill_torchrl._internal.assets import check_assets
+from maniskill_torchrl._internal.mp import preload_forkserver
 from maniskill_torchrl.engines._pool import STEP, STEP_RESET, WorkerFailure, WorkerPool
 from maniskill_torchrl.engines._shared import Layout, SharedBlock
 from maniskill_torchrl.engines._trace import COLLECT_END, HERE_END, SEND, StepTrace, summarize
@@ -57,6 +58,10 @@ from maniskill_torchrl.engines._worker import (
 )
 
 __all__ = ["CPUVectorEnv", "in_process_default"]
+
+# What a worker imports before it makes its env (torch, gymnasium, ManiSkill's tasks): most of its
+# start. The forkserver imports them once; the workers it forks start without (RESULTS.md, "Worker start").
+WORKER_IMPORTS = ("maniskill_torchrl.engines._worker", "mani_skill.envs")
 
 
 def in_process_default(num_envs: int) -> bool:
@@ -200,6 +205,8 @@ class CPUVectorEnv:
         makers = [MakeWorker(env_id, maniskill_kwargs, index=i, trace=spec) for i in range(num_envs)]
         try:
             if num_envs > self._first:  # the workers make their envs while this process makes its own
+                if context == "forkserver":
+                    preload_forkserver(WORKER_IMPORTS)
                 self._pool = WorkerPool(serve, makers[self._first :], context)
             if in_process:
                 self._local = makers[0].make()

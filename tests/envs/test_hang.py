@@ -13,7 +13,7 @@ ParallelEnv, and skips that stage with a message instead of waiting for the time
 Both ParallelEnv stages run in one process (one subprocess, not two: each start imports torch,
 TorchRL and ManiSkill in the parent and in every worker): TorchRL's first, as it depends on the
 global start method that the gym stage left; the library's ParallelEnv starts its workers with
-"spawn" whatever that global says. A stage that raises is reported and the next ones still run;
+the forkserver whatever that global says. A stage that raises is reported and the next ones still run;
 each test checks its own stage and the ones around it.
 
 The gym and ParallelEnv stages start one worker each: one process pins the start method, and one

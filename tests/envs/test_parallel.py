@@ -1,8 +1,9 @@
 """maniskill_torchrl.parallel.ManiSkillParallelEnv: same data as TorchRL's ParallelEnv, sleeping wait,
 batch-scheduled workers, errors instead of hangs (a dead worker, fork after a SAPIEN renderer).
 
-The toy envs here are plain torch (no ManiSkill); workers start with "spawn" (the pytest process
-may hold a SAPIEN renderer from other tests, and then fork is unsafe). One ManiSkill test checks
+The toy envs here are plain torch (no ManiSkill); workers start with the forkserver, the library's
+default ("spawn" for TorchRL's reference; the pytest process may hold a SAPIEN renderer from other
+tests, and then fork is unsafe). One ManiSkill test checks
 the real worker env against an in-process SerialEnv of the same envs.
 """
 
@@ -92,8 +93,8 @@ def torchrl_rollout() -> TensorDict:
 
 @pytest.fixture(scope="module")
 def toy_envs():
-    """``ManiSkillParallelEnv(2, SeededToy, wait=...)`` per wait mode, started once for the module (each
-    spawned worker imports torch and TorchRL): every use seeds its rollout (``run``)."""
+    """``ManiSkillParallelEnv(2, SeededToy, wait=...)`` per wait mode, started once for the module:
+    every use seeds its rollout (``run``)."""
     made: dict[str, ManiSkillParallelEnv] = {}
 
     def get(wait: str) -> ManiSkillParallelEnv:
@@ -120,7 +121,7 @@ def test_same_rollout_as_torchrl_parallelenv(torchrl_rollout: TensorDict, toy_en
 
 def test_worker_crash_raises_quickly() -> None:
     env = ManiSkillParallelEnv(2, crashing_toy, wait="sleep")
-    # Start the workers first (spawn + imports: 5-15 s on a busy machine): the limit is on the crash.
+    # Start the workers first (a few seconds on a busy machine): the limit is on the crash.
     env.reset()
     t0 = time.perf_counter()
     with pytest.raises(RuntimeError, match="dead"):
@@ -133,7 +134,8 @@ def test_wait_and_options() -> None:
     assert ManiSkillParallelEnv(workers, SeededToy).wait == "sleep"  # no core left for the parent
     env = ManiSkillParallelEnv(1, SeededToy, wait="spin")
     assert env.wait == "spin"
-    assert env._mp_start_method == "spawn"
+    assert env._mp_start_method == "forkserver"
+    assert ManiSkillParallelEnv(1, SeededToy, mp_start_method="spawn")._mp_start_method == "spawn"
     with pytest.raises(ValueError, match="wait"):
         ManiSkillParallelEnv(2, SeededToy, wait="busy")
     with pytest.raises(ValueError, match="poll_s"):
@@ -179,6 +181,38 @@ def test_prefer_spawn_only_when_unset() -> None:
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
     assert out.stdout.split() == ["spawn", "forkserver"]
+
+
+_PRELOAD_SCRIPT = """
+import multiprocessing as mp, sys
+from maniskill_torchrl._internal.mp import preload_forkserver
+
+def imported(name, queue):
+    queue.put(name in sys.modules)
+
+def child_has(name):
+    ctx = mp.get_context("forkserver")
+    queue = ctx.Queue()
+    process = ctx.Process(target=imported, args=(name, queue))
+    process.start()
+    process.join(60)
+    return queue.get(timeout=60)
+
+if __name__ == "__main__":
+    mp.set_forkserver_preload(["__main__", "wave"])  # the user's own list is kept
+    print(preload_forkserver(["colorsys"]), child_has("colorsys"), child_has("wave"), child_has("__main__"))
+    # the forkserver runs now: its imports are fixed
+    print(preload_forkserver(["colorsys"]), preload_forkserver(["tabnanny"]), child_has("tabnanny"))
+"""
+
+
+def test_preload_forkserver(tmp_path) -> None:
+    """The forkserver imports the modules once: its children start with them; a running one keeps its own."""
+    script = tmp_path / "preload.py"
+    script.write_text(_PRELOAD_SCRIPT)
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.split("\n")[:2] == ["True True True True", "True False False"], out.stdout
 
 
 def _maniskill_worker():
