@@ -27,7 +27,7 @@ backend="process", num_collectors=N)``.
 3. **The start method defaults to ``"forkserver"``** (``"spawn"`` where the platform has no
    forkserver), whatever ``multiprocessing``'s global start method says, unless
    ``mp_start_method`` is given, and the forkserver imports TorchRL's worker and ManiSkill's
-   tasks once (:data:`WORKER_IMPORTS`, when this process starts it): a worker forked from it
+   tasks once (``WORKER_IMPORTS``, when this process starts it): a worker forked from it
    starts without importing them, most of a ``"spawn"`` worker's start (the figures are in
    RESULTS.md, "Worker start"). Python pins the global method to ``"fork"`` the first time any
    process starts (gymnasium's ``AsyncVectorEnv(context="forkserver")`` does), and ManiSkill
@@ -68,7 +68,7 @@ from torchrl.envs import ParallelEnv as _TorchRLParallelEnv
 from maniskill_torchrl import _private
 from maniskill_torchrl._internal.mp import check_start_method, preload_forkserver
 
-__all__ = ["ManiSkillParallelEnv", "set_batch_policy", "usable_cores", "WORKER_IMPORTS"]
+__all__ = ["ManiSkillParallelEnv", "set_batch_policy", "usable_cores"]
 
 # What a worker imports before it builds its env: TorchRL's worker loop, the library's env and
 # ManiSkill's tasks. The forkserver imports them once for every worker.

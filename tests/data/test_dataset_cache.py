@@ -44,8 +44,9 @@ def _entries(root):
     return {d.name: sorted(c.name for c in d.iterdir()) for d in root.iterdir()}
 
 
-# A process that loads the dataset, forced to overlap with the others: each writes its copy of the
-# cache, then waits until every process has written, so that all of them rename at once.
+# One process's load of the dataset, forced to overlap with the other's: each writes its copy of the
+# cache, then waits until every process has written, so that all of them rename at once. The test
+# process is one of the processes (``load`` here), a subprocess running this source the other.
 _LOADER = textwrap.dedent(
     """
     import sys, time
@@ -53,56 +54,52 @@ _LOADER = textwrap.dedent(
     from tensordict import TensorDict
     from maniskill_torchrl.data import ManiSkillExperienceReplay
 
-    path, root, barrier, me, n, out = sys.argv[1:]
-    original, depth = TensorDict.memmap_, []
+    def load(path, root, barrier, me, n, out):
+        original, depth = TensorDict.memmap_, []
 
-    def memmap_then_wait(self, *args, **kwargs):
-        depth.append(1)
+        def memmap_then_wait(self, *args, **kwargs):
+            depth.append(1)
+            try:
+                result = original(self, *args, **kwargs)
+            finally:
+                depth.pop()
+            if not depth:  # the whole copy is written
+                Path(barrier, me).touch()
+                deadline = time.monotonic() + 120  # a hang guard, not a timing
+                while len(list(Path(barrier).iterdir())) < int(n) and time.monotonic() < deadline:
+                    time.sleep(0.01)
+            return result
+
+        TensorDict.memmap_ = memmap_then_wait
         try:
-            result = original(self, *args, **kwargs)
+            data = ManiSkillExperienceReplay(path, 4, root=root)[:]
         finally:
-            depth.pop()
-        if not depth:  # the whole copy is written
-            Path(barrier, me).touch()
-            deadline = time.monotonic() + 120  # a hang guard, not a timing
-            while len(list(Path(barrier).iterdir())) < int(n) and time.monotonic() < deadline:
-                time.sleep(0.01)
-        return result
+            TensorDict.memmap_ = original
+        data.clone().memmap_(out)
 
-    TensorDict.memmap_ = memmap_then_wait
-    data = ManiSkillExperienceReplay(path, 4, root=root)[:]
-    data.clone().memmap_(out)
+    if __name__ == "__main__":
+        load(*sys.argv[1:])
     """
 )
 
 
 @pytest.mark.parametrize("trial", range(2))
 def test_processes_building_the_same_cache_at_once(demo, tmp_path, trial):
-    """Two processes that load one file at once both end with the file's data, and the cache
-    holds one complete copy (the loser's own temporary copy removed)."""
+    """Two processes that load one file at once (this one and a subprocess) both end with the
+    file's data, and the cache holds one complete copy (the loser's own temporary copy removed)."""
     root, barrier = tmp_path / "cache", tmp_path / "barrier"
     barrier.mkdir()
     script = tmp_path / "load.py"
     script.write_text(_LOADER)
     n = 2
-    procs = [
-        start(
-            [
-                sys.executable,
-                str(script),
-                str(demo),
-                str(root),
-                str(barrier),
-                str(i),
-                str(n),
-                str(tmp_path / f"out{i}"),
-            ],
-            tmp_path,
-        )
-        for i in range(n)
-    ]
-    for p in procs:
-        p.result()
+    args = [[str(demo), str(root), str(barrier), str(i), str(n), str(tmp_path / f"out{i}")] for i in range(n)]
+    other = start([sys.executable, str(script), *args[1]], tmp_path)
+    here: dict = {"__name__": "loader"}
+    exec(compile(_LOADER, str(script), "exec"), here)
+    try:
+        here["load"](*args[0])
+    finally:
+        other.result()
     assert len(list(barrier.iterdir())) == n  # both wrote a copy before either renamed it
     expected = ManiSkillExperienceReplay(demo, 4, root=tmp_path / "alone")[:]
     for i in range(n):
