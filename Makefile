@@ -1,6 +1,6 @@
 # maniskill_torchrl developer targets. Run `make` for help.
 .DEFAULT_GOAL := help
-.PHONY: help setup test test-upstream test-cuda-double test-registry test-nightly lint docs demo bench clean gpu-kit gpu-check
+.PHONY: help setup test test-ray test-upstream test-cuda-double test-registry test-nightly lint docs demo bench clean gpu-kit gpu-check
 
 # MANISKILL=release (default: mani-skill 3.0.x, in .venv) or nightly (mani-skill-nightly, in .venv-nightly).
 MANISKILL   ?= release
@@ -21,6 +21,7 @@ help:
 	@echo "Targets:"
 	@echo "  make setup   create .venv and install the package (+ test, demo, distributed, docs, maniskill extras); checks Vulkan"
 	@echo "  make test    run the test suite, in 2 processes (PYTEST_ARGS=... passed to pytest; WORKERS=1: serially)"
+	@echo "  make test-ray  TorchRL's Ray collectors over the library's envs, on a local Ray instance (tests/examples/test_ray.py, ~1 min)"
 	@echo "  make test-upstream  the TorchRL pull request of upstream/ on a copy of the installed torchrl (tests/upstream, ~1.5 min)"
 	@echo "  make test-cuda-double  the library on a CUDA machine, under the CUDA double (tests/gpu/test_cuda_machine.py, ~3.5 min)"
 	@echo "  make test-registry  every task of ManiSkill's registry whose assets are here (tests/registry, ~3.5 min)"
@@ -38,11 +39,15 @@ help:
 setup:
 	@MANISKILL=$(MANISKILL) bash scripts/setup.sh
 
-# The CUDA-double cases run in a subprocess of their own (tests/gpu/test_cuda_machine.py, the suite's
-# slowest file): their own target, so that `make test` stays inside 5 minutes on 2 cores.
+# Their own targets, so that `make test` stays inside 5 minutes on 2 cores: the CUDA-double cases (a pytest
+# subprocess of their own, tests/gpu/test_cuda_machine.py) and Ray's (a local Ray instance whose actors
+# each import torch, TorchRL and ManiSkill: over a minute of CPU on 2 cores). CI runs both.
 test: setup lint
 	$(VENV)/bin/python -m pytest -q --durations=15 $(call xdist,loadfile) tests --ignore=tests/registry --ignore=tests/docs \
-		--ignore=tests/gpu/test_cuda_machine.py --ignore=tests/upstream $(PYTEST_ARGS)
+		--ignore=tests/gpu/test_cuda_machine.py --ignore=tests/upstream --ignore=tests/examples/test_ray.py $(PYTEST_ARGS)
+
+test-ray: setup
+	$(VENV)/bin/python -m pytest -q --durations=5 tests/examples/test_ray.py $(PYTEST_ARGS)
 
 # upstream/ (upstream/README.md): the module, exports, config and TorchRL's test file applied to a copy of the
 # installed torchrl, whose test file then runs in a child process.

@@ -203,7 +203,8 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
         actor,
         frames_per_batch=frames_per_batch,
         total_frames=math.ceil(args.total_frames / frames_per_batch) * frames_per_batch,
-        init_random_frames=args.learning_starts,
+        # whole batches of random actions (TorchRL rounds up, with a warning, otherwise)
+        init_random_frames=math.ceil(args.learning_starts / frames_per_batch) * frames_per_batch,
         device=device,
         auto_register_policy_transforms=False,  # a feed-forward policy: no InitTracker needed
     )

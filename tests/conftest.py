@@ -11,6 +11,11 @@ import mani_skill.envs  # noqa: F401  (registers the tasks)
 import pytest
 import torch
 
+# One intra-op thread in every test process: the suite runs in 2 pytest-xdist workers on 2 cores beside
+# the sim workers (one thread each, as the library's workers and the examples run), and more threads
+# only compete for the same cores. Every comparison runs its reference in the same process.
+torch.set_num_threads(1)
+
 warnings.filterwarnings("ignore", message=".*precision lowered by casting.*")
 warnings.filterwarnings("ignore", module="mani_skill")
 
@@ -41,11 +46,6 @@ def pytest_collection_finish(session: pytest.Session) -> None:
         if module is not None and module not in started and hasattr(module, "start_early"):
             started.add(module)
             module.start_early()
-
-
-@pytest.fixture(scope="session")
-def torch_single_thread():
-    torch.set_num_threads(1)
 
 
 _RENDERER: list = []  # the render system held for the session, once a test has made one

@@ -22,8 +22,6 @@ from maniskill_torchrl import AsyncPoolCollector, ManiSkillAsyncEnvPool, ManiSki
 from maniskill_torchrl.engines.cpu_vector import in_process_default
 from support.helpers import make_gym_env
 
-pytestmark = pytest.mark.usefixtures("torch_single_thread")
-
 N, SEED = 2, 7
 PICK = dict(obs_mode="state", max_episode_steps=5)
 

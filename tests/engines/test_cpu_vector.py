@@ -33,8 +33,6 @@ from maniskill_torchrl import (
 )
 from support.helpers import make_gym_env, random_actions, start
 
-pytestmark = pytest.mark.usefixtures("torch_single_thread")
-
 N = 2
 CART = dict(obs_mode="state", max_episode_steps=30, sim_backend="cpu")  # random actions fail it after ~20 steps
 PICK = dict(obs_mode="state_dict", max_episode_steps=5, sim_backend="cpu")

@@ -21,8 +21,6 @@ from maniskill_torchrl import CPUVectorEnv
 from maniskill_torchrl.engines._shared import Layout, SharedBlock
 from maniskill_torchrl.engines._worker import DONE, STEP
 
-pytestmark = pytest.mark.usefixtures("torch_single_thread")
-
 SHM = Path("/dev/shm")
 
 

@@ -22,8 +22,6 @@ from torchrl.envs.utils import step_mdp
 from maniskill_torchrl import ActionRepeat, ManiSkillEnv
 from support.helpers import assert_same, clone_tree, make_gym_env, random_actions, tensor_infos
 
-pytestmark = pytest.mark.usefixtures("torch_single_thread")
-
 N, REPEAT = 2, 3
 PUSH = dict(obs_mode="state", max_episode_steps=5, sim_backend="cpu")
 ACTIONS = random_actions(gym.spaces.Box(-1, 1, (N, 8)), 8, seed=2)

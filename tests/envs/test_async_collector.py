@@ -10,14 +10,11 @@ from __future__ import annotations
 
 import functools
 
-import pytest
 import torch
 from tensordict.nn import TensorDictModule
 from torchrl.collectors import AsyncBatchedCollector
 
 from maniskill_torchrl import ManiSkillEnv
-
-pytestmark = pytest.mark.usefixtures("torch_single_thread")
 
 EPISODE = 6
 

@@ -32,8 +32,6 @@ from torchrl.envs.utils import check_env_specs, step_mdp
 from maniskill_torchrl import ManiSkillEnv, ManiSkillWrapper
 from support.helpers import assert_same, clone_tree, close_envs, make_gym_env, random_actions, tensor_infos
 
-pytestmark = pytest.mark.usefixtures("torch_single_thread")
-
 SHORT = 6  # episode limit for the truncation tests: several episodes in a short rollout
 
 # name -> (env id, gym.make kwargs, extra ManiSkillEnv kwargs)

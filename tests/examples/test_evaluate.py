@@ -214,9 +214,10 @@ def test_bad_flags(argv: list[str], message: str, capsys) -> None:
 
 
 # ----------------------------------------------------------------- SAC checkpoints
-def test_sac_checkpoint_evaluates(tmp_path: Path) -> None:
+def test_sac_checkpoint_evaluates(tmp_path: Path, capsys) -> None:
     """``sac_torchrl.save_checkpoint``'s file: found in its folder, rebuilt as SAC's actor (state-dependent
-    scale) with the saved weights, deterministic tanh(loc); the CLI evaluates it on seeded episodes."""
+    scale) with the saved weights, deterministic tanh(loc); the CLI's ``main`` evaluates it on seeded
+    episodes (in this process: the subprocess runs are above)."""
     import sac_torchrl
 
     torch.manual_seed(0)
@@ -233,9 +234,15 @@ def test_sac_checkpoint_evaluates(tmp_path: Path) -> None:
     loc = actor.module[0].module[0](obs).chunk(2, -1)[0]  # the saved actor's mean, before the tanh
     assert torch.allclose(torch.as_tensor(a), torch.tanh(loc), atol=1e-6)
 
-    out = run(
-        [sys.executable, str(EXAMPLES / "evaluate_gym.py"), "--checkpoint", str(tmp_path), "--num-envs", "1"]
-        + ["--episodes", "2", "--max-episode-steps", "5", "--seed", "3"],
-        cwd=tmp_path,
-    ).stdout
+    capsys.readouterr()
+    threads = torch.get_num_threads()
+    try:
+        code = evaluate_gym.main(
+            ["--checkpoint", str(tmp_path), "--num-envs", "1", "--episodes", "2", "--max-episode-steps", "5"]
+            + ["--seed", "3"]
+        )
+    finally:
+        torch.set_num_threads(threads)  # main sets one thread
+    out = capsys.readouterr().out
+    assert code == 0, out
     assert "episodes: 2" in out and re.search(r"^avg success_once: \S+$", out, re.M), out

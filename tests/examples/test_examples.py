@@ -1,11 +1,11 @@
 """What users run: the ``maniskill-torchrl demo`` CLI and the examples, end to end.
 
-Each runs as a subprocess in a small configuration, the way a user starts it,
-and the test checks its exit code, its printed lines and the files it writes.
-Flag validation runs in-process (no simulator is built). The runs overlap, two at
-a time (:func:`runs`): alone, each leaves a core idle for seconds while its main
-process imports torch, TorchRL and ManiSkill. On 2 CPU cores the whole file takes
-one to one and a half minutes; nothing here is skipped.
+The console script (``maniskill-torchrl demo``) and ``python -m maniskill_torchrl`` run as
+subprocesses, the way a user starts them, overlapping (:func:`runs`). The examples run their
+``main(argv)`` in this process in a small configuration (:func:`in_process`): a subprocess each
+would import torch, TorchRL and ManiSkill again, most of its cost. Each test checks the exit
+code, the printed lines and the files written. Flag validation runs in-process (no simulator is
+built); nothing here is skipped.
 """
 
 from __future__ import annotations
@@ -20,21 +20,39 @@ from pathlib import Path
 import pytest
 
 import bc_torchrl
+import evaluate_gym
 import evaluation
+import migrate_from_maniskill
 import ppo_torchrl
 import sac_torchrl
 import sim_device
 from maniskill_torchrl import cli
-from support.helpers import EXAMPLES, TIMEOUT_S, Started, start
+from support.helpers import TIMEOUT_S, Started, start
 
 BIN = Path(sys.executable).parent
 
 
-def _smoke(example: str, cwd) -> list[str]:
-    """``<example>_torchrl.py --smoke`` with the simulator and the learner's device pinned: on a
-    machine with CUDA too, the CPU sim and a CPU learner."""
-    script = str(EXAMPLES / f"{example}_torchrl.py")
-    return [sys.executable, script, "--smoke", "--sim-backend", "cpu", "--device", "cpu", "--out", str(cwd / example)]
+def in_process(module, argv: list[str], cwd: Path, monkeypatch: pytest.MonkeyPatch, capsys) -> str:
+    """``module.main(argv)`` run in ``cwd`` in this process, as ``python module.py *argv`` would run
+    it: its exit code checked, what it printed returned. The torch threads it sets are restored."""
+    import torch
+
+    threads = torch.get_num_threads()
+    monkeypatch.chdir(cwd)
+    capsys.readouterr()
+    try:
+        code = module.main(argv)
+    finally:
+        torch.set_num_threads(threads)
+    out, err = capsys.readouterr()
+    assert code == 0, f"{module.__name__}.main({argv}) returned {code}\n{out[-4000:]}\n{err[-4000:]}"
+    return out
+
+
+def _smoke(example: str, cwd: Path) -> list[str]:
+    """``<example>_torchrl.py --smoke``'s arguments with the simulator and the learner's device
+    pinned: on a machine with CUDA too, the CPU sim and a CPU learner."""
+    return ["--smoke", "--sim-backend", "cpu", "--device", "cpu", "--out", str(cwd / example)]
 
 
 # test name -> the command it runs, given its working folder
@@ -55,30 +73,6 @@ COMMANDS: dict[str, Callable[[Path], list[str]]] = {
         "--no-progress",
     ],
     "test_python_dash_m_help": lambda cwd: [sys.executable, "-m", "maniskill_torchrl", "demo", "--help"],
-    "test_ppo_smoke": lambda cwd: _smoke("ppo", cwd),
-    "test_sac_smoke": lambda cwd: _smoke("sac", cwd),
-    "test_evaluate_gym": lambda cwd: [
-        sys.executable,
-        str(EXAMPLES / "evaluate_gym.py"),
-        "--num-envs",
-        "1",
-        "--episodes",
-        "2",
-        "--max-episode-steps",
-        "10",
-        "--seed",
-        "1",
-    ],
-    "test_migrate_from_maniskill": lambda cwd: [
-        sys.executable,
-        str(EXAMPLES / "migrate_from_maniskill.py"),
-        "--steps",
-        "12",
-        "--max-episode-steps",
-        "10",
-        "--repeat",
-        "2",
-    ],
 }
 
 
@@ -239,12 +233,12 @@ def test_scripted_policy_is_batched_and_bounded() -> None:
 
 
 # ------------------------------------------------------------------------- examples
-def test_ppo_smoke(runs) -> None:
-    proc, cwd = runs("test_ppo_smoke")
-    out = cwd / "ppo"
-    assert "PPO on PushCube-v1 (CPU sim, 2 envs, ActionRepeat(1), learner on cpu)" in proc.stdout
-    iters = [line for line in proc.stdout.splitlines() if line.startswith("iter")]
-    assert len(iters) == 3, proc.stdout
+def test_ppo_smoke(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys) -> None:
+    stdout = in_process(ppo_torchrl, _smoke("ppo", tmp_path), tmp_path, monkeypatch, capsys)
+    out = tmp_path / "ppo"
+    assert "PPO on PushCube-v1 (CPU sim, 2 envs, ActionRepeat(1), learner on cpu)" in stdout
+    iters = [line for line in stdout.splitlines() if line.startswith("iter")]
+    assert len(iters) == 3, stdout
 
     records = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     assert [r["frames"] for r in records] == [100, 200, 300]
@@ -260,12 +254,12 @@ def test_ppo_smoke(runs) -> None:
     assert any(k.endswith("weight") for k in ckpt["policy"]) and any(k.endswith("weight") for k in ckpt["value"])
 
 
-def test_sac_smoke(runs) -> None:
+def test_sac_smoke(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys) -> None:
     """``sac_torchrl.py --smoke --sim-backend cpu --device cpu``: random frames, updates, two evaluations
     (the random policy's and the trained one's) and both checkpoints."""
-    proc, cwd = runs("test_sac_smoke")
-    out = cwd / "sac"
-    assert "SAC on PushCube-v1 (CPU sim, 2 envs, learner on cpu)" in proc.stdout, proc.stdout
+    stdout = in_process(sac_torchrl, _smoke("sac", tmp_path), tmp_path, monkeypatch, capsys)
+    out = tmp_path / "sac"
+    assert "SAC on PushCube-v1 (CPU sim, 2 envs, learner on cpu)" in stdout, stdout
     records = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     assert [(r["eval"], r["frames"]) for r in records] == [("random", 0), ("policy", 400)]
     assert all(r["episodes"] == 2 and {"success_once", "return"} <= set(r) for r in records)
@@ -276,24 +270,27 @@ def test_sac_smoke(runs) -> None:
     assert (out / "sac_checkpoint_best.pt").exists()
 
 
-def test_evaluate_gym(runs) -> None:
+def test_evaluate_gym(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys) -> None:
     """The random policy without a checkpoint. One sub-env: its second episode starts with
-    gymnasium's autoreset step (``tests/test_evaluate.py`` runs two sub-envs, with a checkpoint)."""
-    proc, _ = runs("test_evaluate_gym")
-    lines = [line for line in proc.stdout.splitlines() if line.startswith("episode ")]
-    assert len(lines) == 2, proc.stdout
+    gymnasium's autoreset step (``tests/test_evaluate.py`` runs two sub-envs, with a checkpoint, as
+    subprocesses)."""
+    argv = ["--num-envs", "1", "--episodes", "2", "--max-episode-steps", "10", "--seed", "1"]
+    stdout = in_process(evaluate_gym, argv, tmp_path, monkeypatch, capsys)
+    lines = [line for line in stdout.splitlines() if line.startswith("episode ")]
+    assert len(lines) == 2, stdout
     for line in lines:
         # ignore_terminations=True: every episode runs to the time limit.
         assert "success_once=" in line and "success_at_end=" in line and "return=" in line
         assert "episode_len=10" in line
     for avg in ("episodes: 2", "avg success_once:", "avg success_at_end:", "avg return:"):
-        assert avg in proc.stdout
+        assert avg in stdout
 
 
-def test_migrate_from_maniskill(runs) -> None:
-    proc, _ = runs("test_migrate_from_maniskill")
-    assert "identical: True" in proc.stdout, proc.stdout
-    assert proc.stdout.count("reset") >= 2 * 3  # both columns: the first reset and two seeded resets
+def test_migrate_from_maniskill(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys) -> None:
+    argv = ["--steps", "12", "--max-episode-steps", "10", "--repeat", "2"]
+    stdout = in_process(migrate_from_maniskill, argv, tmp_path, monkeypatch, capsys)
+    assert "identical: True" in stdout, stdout
+    assert stdout.count("reset") >= 2 * 3  # both columns: the first reset and two seeded resets
 
 
 # ------------------------------------------------------------ --sim-backend / --device

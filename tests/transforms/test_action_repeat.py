@@ -34,8 +34,6 @@ from maniskill_torchrl.transforms import ActionRepeat as ActionRepeatFromTransfo
 from support.helpers import assert_same, make_gym_env, random_actions
 from support.toy_env import ToyEnv, serial_toy_env, toy_nested, toy_reward
 
-pytestmark = pytest.mark.usefixtures("torch_single_thread")
-
 
 # ============================================================================ helpers
 def _clone(x):
