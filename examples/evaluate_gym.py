@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import multiprocessing
 import sys
 import time
 from typing import Any
@@ -325,4 +326,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":  # forkserver workers re-import this file
+    # The forkserver imports ManiSkill once: each worker it forks starts without importing it again.
+    multiprocessing.set_forkserver_preload(["__main__", "mani_skill.envs", "maniskill_torchrl.wrappers"])
     sys.exit(main())

@@ -2,7 +2,7 @@
 batch-scheduled workers, errors instead of hangs (a dead worker, fork after a SAPIEN renderer).
 
 The toy envs here are plain torch (no ManiSkill); workers start with the forkserver, the library's
-default ("spawn" for TorchRL's reference; the pytest process may hold a SAPIEN renderer from other
+default (TorchRL's reference too; the pytest process may hold a SAPIEN renderer from other
 tests, and then fork is unsafe). One ManiSkill test checks
 the real worker env against an in-process SerialEnv of the same envs.
 """
@@ -84,7 +84,7 @@ def run(env, steps: int = STEPS, seed: int = 3) -> TensorDict:
 @pytest.fixture(scope="module")
 def torchrl_rollout() -> TensorDict:
     """The reference: TorchRL's own ParallelEnv (spin wait), seeded."""
-    ref_env = TorchRLParallelEnv(2, SeededToy, mp_start_method="spawn")
+    ref_env = TorchRLParallelEnv(2, SeededToy, mp_start_method="forkserver")
     try:
         return run(ref_env)
     finally:

@@ -3,15 +3,14 @@
 The checkpoint is a tiny one (hidden 32) written in ``ppo_torchrl.py``'s format
 from ``ppo_torchrl.make_models``, with a last layer that gives large actions, so
 that episodes differ; training one with ``ppo_torchrl.py`` would cost ~30 s more
-(``test_examples.py::test_ppo_smoke`` runs the trainer). The two backends run as
-subprocesses side by side (2 sim workers each); the checks of bad checkpoints run
-in-process, where nothing builds a simulator. About 40 s on 2 busy CPU cores.
+(``test_examples.py::test_ppo_smoke`` runs the trainer). The two backends run side by
+side: gym's as a subprocess, TorchRL's in this process (2 sim envs each); the checks of
+bad checkpoints run in-process, where nothing builds a simulator.
 """
 
 from __future__ import annotations
 
 import re
-import subprocess
 import sys
 from pathlib import Path
 
@@ -24,7 +23,7 @@ import evaluate_gym
 import ppo_checkpoint
 from ppo_checkpoint import CheckpointError, check_sizes, load_checkpoint, policy_from_checkpoint
 from ppo_torchrl import CHECKPOINT_FORMAT, make_models
-from support.helpers import EXAMPLES, TIMEOUT_S, run
+from support.helpers import EXAMPLES, start
 
 ENV_ID, CONTROL_MODE, OBS_DIM, ACT_DIM, HIDDEN = "PushCube-v1", "pd_joint_delta_pos", 35, 8, 32
 
@@ -66,32 +65,23 @@ def ckpt_path(tmp_path_factory) -> Path:
 
 
 # --------------------------------------------------------------------- end to end
-def test_gym_and_torchrl_backends_agree_and_video(ckpt_path: Path, tmp_path: Path) -> None:
-    """3 seeded episodes (2 envs: a full round and a partial one) through both backends at once."""
-    common = [
-        sys.executable,
-        str(EXAMPLES / "evaluate_gym.py"),
-        "--checkpoint",
-        str(ckpt_path),
-        "--num-envs",
-        "2",
-        "--episodes",
-        "3",
-        "--max-episode-steps",
-        "8",
-        "--seed",
-        "5",
-    ]
+def test_gym_and_torchrl_backends_agree_and_video(ckpt_path: Path, tmp_path: Path, capsys) -> None:
+    """3 seeded episodes (2 envs: a full round and a partial one) through both backends at once: gym's
+    as a user runs it (a subprocess, with a video), TorchRL's in this process meanwhile (its ``main``)."""
+    args = ["--checkpoint", str(ckpt_path), "--num-envs", "2", "--episodes", "3", "--max-episode-steps", "8"]
+    args += ["--seed", "5"]
     video = tmp_path / "eval.mp4"
-    torchrl_cmd = common + ["--backend", "torchrl"]
-    other = subprocess.Popen(torchrl_cmd, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    gym_cmd = [sys.executable, str(EXAMPLES / "evaluate_gym.py"), *args, "--video", str(video), "--video-episodes", "2"]
+    gym_run = start(gym_cmd, tmp_path)
+    capsys.readouterr()
+    threads = torch.get_num_threads()
     try:
-        gym_out = run(common + ["--video", str(video), "--video-episodes", "2"], cwd=tmp_path).stdout
-        torchrl_out, torchrl_err = other.communicate(timeout=TIMEOUT_S)
+        code = evaluate_gym.main([*args, "--backend", "torchrl"])
     finally:
-        if other.poll() is None:
-            other.kill()
-    assert other.returncode == 0, f"{' '.join(torchrl_cmd)}\n{torchrl_out[-4000:]}\n{torchrl_err[-4000:]}"
+        torch.set_num_threads(threads)  # main sets one thread
+        gym_out = gym_run.result().stdout
+    torchrl_out = capsys.readouterr().out
+    assert code == 0, torchrl_out
 
     assert f"{ENV_ID}, control mode {CONTROL_MODE}, repeat 1" in gym_out
     lines = [line for line in gym_out.splitlines() if line.startswith("episode ")]
