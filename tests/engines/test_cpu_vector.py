@@ -422,3 +422,16 @@ def test_script_without_main_guard_gets_a_clear_error(no_guard_script) -> None:
     assert proc.returncode != 0
     assert "a worker process died while starting" in proc.stderr, proc.stderr[-3000:]
     assert "if __name__ == '__main__':" in proc.stderr, proc.stderr[-3000:]
+
+
+def test_workers_fork_from_a_preloaded_forkserver(monkeypatch):
+    """A pool with workers asks the forkserver to import the workers' modules first (the tests' own
+    forkserver already has: here the call is recorded, not made); without workers nothing is asked."""
+    import maniskill_torchrl.engines.cpu_vector as cpu_vector_module
+
+    asked = []
+    monkeypatch.setattr(cpu_vector_module, "preload_forkserver", lambda modules: asked.append(tuple(modules)))
+    CPUVectorEnv("PickCube-v1", num_envs=1, obs_mode="state").close()
+    assert asked == []
+    CPUVectorEnv("PickCube-v1", num_envs=2, obs_mode="state", in_process=True).close()
+    assert asked == [cpu_vector_module.WORKER_IMPORTS] and "mani_skill.envs" in asked[0]

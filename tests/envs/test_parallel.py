@@ -246,3 +246,19 @@ def run_maniskill(env, steps: int = 8) -> TensorDict:
         step, td = env.step_and_maybe_reset(td)
         out.append(step.clone())
     return torch.stack(out, -1)
+
+
+def test_workers_fork_from_a_preloaded_forkserver(monkeypatch) -> None:
+    """The env's workers start with the forkserver, which it asks to import TorchRL's worker and ManiSkill
+    (the tests' own forkserver already has: here the call is recorded, not made)."""
+    import maniskill_torchrl.parallel as parallel_module
+
+    asked = []
+    monkeypatch.setattr(parallel_module, "preload_forkserver", lambda modules: asked.append(tuple(modules)))
+    env = ManiSkillParallelEnv(1, SeededToy)
+    try:
+        env.reset()
+    finally:
+        env.close()
+    assert env._mp_start_method == "forkserver"
+    assert asked == [parallel_module.WORKER_IMPORTS] and "mani_skill.envs" in asked[0]
