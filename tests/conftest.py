@@ -63,17 +63,19 @@ def pytest_collection_finish(session: pytest.Session) -> None:
 _RENDERER: list = []  # the render system held for the session, once a test has made one
 
 
-@pytest.fixture(autouse=True)
-def _keep_sapien_renderer():
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_call(item: pytest.Item):
     """Keeps SAPIEN's render engine alive in this process once a test has created one.
 
     SAPIEN frees its engine when the last ManiSkill env that renders is freed (module fixtures
-    close theirs at teardown), and the next env's first picture builds it again: 6-10 s of CPU
-    rendering with Mesa's lavapipe, paid in every test module that renders. Held from the first
-    test that loaded the Vulkan driver on (never earlier: the fork guards and
-    ``test_vulkan_loaded_after_a_maniskill_env`` see this process as the tests made it), on the
-    CPU render device only (the one ManiSkill falls back to without CUDA; SAPIEN renders on one
-    device per process). The pictures are the same: only the engine's start-up is skipped.
+    close theirs at teardown), and the next env's first picture builds it again: about 6 s (11
+    CPU-s) of Mesa's lavapipe computing SAPIEN's BRDF lookup table, in every test that renders
+    after one whose envs were freed. Held right after the body of the first test that loaded the
+    Vulkan driver, before its fixtures free its envs, so that the engine it built, table and all,
+    stays (never earlier: the fork guards and ``test_vulkan_loaded_after_a_maniskill_env`` see
+    this process as the tests made it); on the CPU render device only (the one ManiSkill falls
+    back to without CUDA; SAPIEN renders on one device per process). The pictures are the same:
+    only the engine's start-up is skipped.
     """
     yield
     if _RENDERER:
@@ -82,14 +84,16 @@ def _keep_sapien_renderer():
 
     if not vulkan_loaded():
         return
-    from maniskill_torchrl._internal.rendering import _no_cuda_render_device
-
-    # Asked of SAPIEN, as ManiSkill's default render backend asks: a machine whose SAPIEN renders
-    # on CUDA (even where torch sees no CUDA) must not hold a CPU renderer.
-    if not _no_cuda_render_device():
-        return
     import sapien
 
+    # Asked of SAPIEN itself, as ManiSkill's default render backend asks: a machine whose SAPIEN
+    # renders on CUDA (even where torch sees no CUDA) must not hold a CPU renderer. Not the library's
+    # `_no_cuda_render_device`, which the CUDA double replaces while its envs render on the CPU.
+    try:
+        sapien.Device("cuda")
+        return
+    except RuntimeError:
+        pass
     try:
         _RENDERER.append(sapien.render.RenderSystem(sapien.Device("cpu")))
     except Exception:  # noqa: BLE001 - a speed-up only: without it the tests run as before
