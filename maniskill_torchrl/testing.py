@@ -55,8 +55,8 @@ def check_maniskill_env(
          done specs); the task's raw reward must hold one value per env;
        - the observation, reward (as float32), ``terminated``, ``truncated``, ``done`` and tensor
          infos equal raw ManiSkill's.
-    2. :func:`torchrl.envs.utils.check_env_specs` on a ``ManiSkillEnv`` of its own (it steps its
-       env).
+    2. :func:`torchrl.envs.utils.check_env_specs` on the same env, after the comparison (it steps
+       its env).
     3. With ``num_envs=1`` (CPU sim): the gym shim's ``CPUGymWrapper`` against ManiSkill's, the
        same way: observations, rewards, flags and infos equal in value, dtype and Python type.
 
@@ -92,16 +92,14 @@ def check_maniskill_env(
         else:
             raws = [gym.make(env_id, num_envs=num_envs, **gym_kwargs)]
         _compare_with_raw(env, raws, steps, seed, per_sub_env, where)
+        for raw in raws:
+            raw.close()
+        raws = []
+        check_env_specs(env, seed=seed)  # after the comparison, which its steps would have shifted
     finally:
         env.close()
         for raw in raws:
             raw.close()
-
-    env = ManiSkillEnv(env_id, num_envs=num_envs, **maniskill_kwargs)
-    try:
-        check_env_specs(env, seed=seed)
-    finally:
-        env.close()
     if num_envs == 1 and not on_gpu:
         _compare_shim(env_id, steps, seed, maniskill_kwargs, where)
 

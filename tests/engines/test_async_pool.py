@@ -124,17 +124,24 @@ def test_receives_whichever_envs_are_done_and_keeps_them_on_timeout(pool):
     pool.set_seed(SEED)
     roots = pool.reset()
     roots["action"] = torch.zeros(N, 8)
-    pool.async_step_send(roots[:1], env_index=[0])
-    with pytest.raises(RuntimeError, match="Cannot await 2"):
-        pool.async_step_recv(min_get=2)
-    with pytest.raises(RuntimeError, match="still have a step under way"):
+    # Env 0's worker is stopped until the timeout has been seen: its step (milliseconds) cannot
+    # finish before the checks below, however slow they run.
+    worker = pool._engine._pool.processes[0]
+    os.kill(worker.pid, signal.SIGSTOP)
+    try:
         pool.async_step_send(roots[:1], env_index=[0])
-    with pytest.raises(RuntimeError, match="still processing a step"):  # TorchRL's own check
-        pool.rollout(1)
-    with pytest.raises(RuntimeError, match="split-phase call pending"):  # the engine's, under it
-        pool._engine.step(torch.zeros(N, 8))
-    with pytest.raises(TimeoutError, match="kept for the next call"):
-        pool.async_step_recv(min_get=1, timeout=0.0)  # a step takes milliseconds
+        with pytest.raises(RuntimeError, match="Cannot await 2"):
+            pool.async_step_recv(min_get=2)
+        with pytest.raises(RuntimeError, match="still have a step under way"):
+            pool.async_step_send(roots[:1], env_index=[0])
+        with pytest.raises(RuntimeError, match="still processing a step"):  # TorchRL's own check
+            pool.rollout(1)
+        with pytest.raises(RuntimeError, match="split-phase call pending"):  # the engine's, under it
+            pool._engine.step(torch.zeros(N, 8))
+        with pytest.raises(TimeoutError, match="kept for the next call"):
+            pool.async_step_recv(min_get=1, timeout=0.0)
+    finally:
+        os.kill(worker.pid, signal.SIGCONT)
     out = pool.async_step_recv(min_get=1)
     assert out["env_index"].tolist() == [0]
     assert out["next", "observation"].shape == (1, 42)

@@ -1,10 +1,10 @@
 """Every task of ManiSkill's registry through the library (``make test-registry``; CI runs it).
 
 For each registered task whose assets are here, :func:`maniskill_torchrl.testing.check_maniskill_env`:
-``check_env_specs`` on an env of its own, then 20 seeded steps (resets included) of
-``ManiSkillEnv`` equal to raw ManiSkill, and the gym shim's ``CPUGymWrapper`` equal to
-ManiSkill's. A sample of tasks, one per robot family, runs the batched CPU env
-(``num_envs=2``, one process per sub-env) the same way. A task whose assets are absent is
+20 seeded steps (resets included) of ``ManiSkillEnv`` equal to raw ManiSkill, then
+``check_env_specs`` on the same env, and the gym shim's ``CPUGymWrapper`` equal to ManiSkill's.
+A sample of tasks, one per robot family, runs the batched CPU env (``num_envs=2``, one process
+per sub-env) the same way. A task whose assets are absent is
 skipped, and the reason is the library's own error: the asset and the command that fetches it.
 """
 
