@@ -11,7 +11,8 @@
 #    (the `maniskill` extra: the ManiSkill 3.0.x release) in one resolve, then
 #    byte-compiles site-packages on all cores (compileall -j 0).
 #    The install itself is uv's `uv pip install` (uv installed into the venv by pip first), with
-#    pip's index settings (`pip config list`: index URLs, find-links, constraints, cert) passed on,
+#    pip's index settings (`pip config list`: index URLs, find-links, constraints, cert) passed on
+#    by scripts/uv_args.py,
 #    and pip's resolution semantics (--index-strategy unsafe-best-match): the same versions as
 #    pip, in about a quarter of the time (pip resolves and unpacks ~7 GB on one core). Where uv
 #    cannot be installed or fails, pip installs as before (MANISKILL_TORCHRL_NO_UV=1: always).
@@ -23,7 +24,7 @@
 #    state observations). On Debian bookworm as root it installs Mesa
 #    lavapipe from bookworm-backports when none is found.
 #
-# A stamp (.venv/.setup-stamp, sha256 of pyproject.toml + this script) skips
+# A stamp (.venv/.setup-stamp, sha256 of pyproject.toml + this script + uv_args.py) skips
 # pip entirely when nothing changed; a successful Vulkan probe is cached in
 # .venv/.vulkan-ok.
 #
@@ -67,31 +68,6 @@ PY="$VENV/bin/python"
 STAMP="$VENV/.setup-stamp"
 VULKAN_STAMP="$VENV/.vulkan-ok"
 
-# pip's settings that choose where packages come from, as uv's options, one per line:
-# `pip config list` (files and PIP_* variables; a variable wins over a file, an [install] value
-# over a [global] one, as in pip), and the cert as SSL_CERT_FILE, which uv reads.
-uv_args_from_pip() {
-    "$PY" -m pip config list 2>/dev/null | "$PY" -c '
-import ast, sys
-rank = {"global": 0, "install": 1, ":env:": 2}
-best = {}
-for line in sys.stdin:
-    key, sep, value = line.strip().partition("=")
-    section, _, name = key.rpartition(".")
-    if sep and section in rank and rank[section] >= best.get(name, (-1, ""))[0]:
-        best[name] = (rank[section], ast.literal_eval(value))
-flags = {"index-url": "--default-index", "extra-index-url": "--extra-index-url", "find-links": "--find-links",
-         "constraint": "--constraints"}
-for name, flag in flags.items():
-    for value in best.get(name, (0, ""))[1].split():
-        print(flag); print(value)
-if best.get("no-index", (0, "0"))[1].lower() in ("1", "true", "yes", "on"):
-    print("--no-index")
-if best.get("cert"):
-    print("SSL_CERT_FILE=" + best["cert"][1])
-'
-}
-
 # Installs its arguments (pip install's) with uv; returns non-zero where uv is not there or fails.
 uv_install() {
     [[ "${MANISKILL_TORCHRL_NO_UV:-0}" != 1 ]] || return 1
@@ -99,7 +75,7 @@ uv_install() {
     local opts=() envs=() line
     while IFS= read -r line; do
         if [[ "$line" == SSL_CERT_FILE=* ]]; then envs+=("$line"); else opts+=("$line"); fi
-    done < <(uv_args_from_pip)
+    done < <("$PY" -m pip config list 2>/dev/null | "$PY" scripts/uv_args.py)
     env ${envs[@]+"${envs[@]}"} "$VENV/bin/uv" pip install --quiet --python "$PY" \
         --index-strategy unsafe-best-match ${opts[@]+"${opts[@]}"} "$@"
 }
@@ -112,7 +88,7 @@ if [[ ! -x "$PY" ]]; then
     "${PYTHON:-python3}" -m venv "$VENV"
 fi
 
-want_hash="$( (sha256sum pyproject.toml scripts/setup.sh; echo "${MANISKILL_REQ[*]:-}") | sha256sum | cut -d' ' -f1)"
+want_hash="$( (sha256sum pyproject.toml scripts/setup.sh scripts/uv_args.py; echo "${MANISKILL_REQ[*]:-}") | sha256sum | cut -d' ' -f1)"
 have_hash="$(cat "$STAMP" 2>/dev/null || true)"
 
 if [[ "$want_hash" == "$have_hash" ]]; then

@@ -73,7 +73,9 @@ def _run(cmd: list[str], cwd: Path, pythonpath: Path | None = None, check: bool 
 def _copy_torchrl(target: Path, files: list[str] | None = None) -> None:
     """The installed torchrl package (or only ``files`` of it) under ``target/torchrl``."""
     if files is None:
-        shutil.copytree(TORCHRL, target / "torchrl", ignore=shutil.ignore_patterns("__pycache__"))
+        # With the bytecode (copytree keeps each file's time, which a .pyc is checked against): a
+        # child process need not compile torchrl again; the files apply.py rewrites are newer.
+        shutil.copytree(TORCHRL, target / "torchrl")
         return
     for rel in files:
         dest = target / rel
