@@ -8,25 +8,35 @@ import multiprocessing
 import warnings
 from pathlib import Path
 
-import mani_skill.envs  # noqa: F401  (registers the tasks)
 import pytest
-import torch
 
-from maniskill_torchrl._internal.mp import preload_forkserver
-from maniskill_torchrl.engines.cpu_vector import WORKER_IMPORTS as CPU_ENGINE_IMPORTS
-from maniskill_torchrl.parallel import WORKER_IMPORTS as PARALLEL_IMPORTS
 
-# One intra-op thread in every test process: the suite runs in 2 pytest-xdist workers on 2 cores beside
-# the sim workers (one thread each, as the library's workers and the examples run), and more threads
-# only compete for the same cores. Every comparison runs its reference in the same process.
-torch.set_num_threads(1)
+def pytest_configure(config: pytest.Config) -> None:
+    """The set-up of every process that runs tests. Not in pytest-xdist's controller, which runs
+    none: it starts its workers without first importing torch and ManiSkill (about 9 s of CPU)."""
+    if getattr(config, "workerinput", None) is None and config.getoption("numprocesses", None):
+        return
+    import mani_skill.envs  # noqa: F401  (registers the tasks)
+    import torch
 
-# Every worker process of the tests (the library's, TorchRL's ParallelEnv, collectors and AsyncEnvPool,
-# which start with the global method) forks from one forkserver that imported torch, TorchRL and
-# ManiSkill once: each spawned worker would import them again (docs/guides/cpu_performance.md,
-# "Worker start"). The start method itself is tested in subprocesses (test_parallel.py, test_hang.py).
-multiprocessing.set_start_method("forkserver", force=True)
-preload_forkserver([*CPU_ENGINE_IMPORTS, *PARALLEL_IMPORTS])
+    from maniskill_torchrl._internal.mp import preload_forkserver
+    from maniskill_torchrl.engines.cpu_vector import WORKER_IMPORTS as CPU_ENGINE_IMPORTS
+    from maniskill_torchrl.parallel import WORKER_IMPORTS as PARALLEL_IMPORTS
+
+    # One intra-op thread in every test process: the suite runs in 2 pytest-xdist workers on 2 cores
+    # beside the sim workers (one thread each, as the library's workers and the examples run), and
+    # more threads only compete for the same cores. Every comparison runs its reference in the same
+    # process.
+    torch.set_num_threads(1)
+
+    # Every worker process of the tests (the library's, TorchRL's ParallelEnv, collectors and
+    # AsyncEnvPool, which start with the global method) forks from one forkserver that imported
+    # torch, TorchRL and ManiSkill once: each spawned worker would import them again
+    # (docs/guides/cpu_performance.md, "Worker start"). The start method itself is tested in
+    # subprocesses (test_parallel.py, test_hang.py).
+    multiprocessing.set_start_method("forkserver", force=True)
+    preload_forkserver([*CPU_ENGINE_IMPORTS, *PARALLEL_IMPORTS])
+
 
 warnings.filterwarnings("ignore", message=".*precision lowered by casting.*")
 warnings.filterwarnings("ignore", module="mani_skill")
