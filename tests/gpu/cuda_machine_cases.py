@@ -30,7 +30,7 @@ from maniskill_torchrl.parallel import ManiSkillParallelEnv  # noqa: E402
 from maniskill_torchrl.testing import assert_on_device, assert_tensordict_equal  # noqa: E402
 from maniskill_torchrl.wrappers import CPUGymWrapper  # noqa: E402
 from support.cuda_double import DEVICE  # noqa: E402  (the sitecustomize of tests/gpu/cuda_site installed it)
-from support.helpers import closed_after_test, close_envs, random_actions  # noqa: E402, F401  (closed_after_test: the envs fixture)
+from support.helpers import close_envs, closed_after_test, random_actions  # noqa: E402, F401  (closed_after_test: the envs fixture)
 
 ENV_ID = "PickCube-v1"
 KW = dict(
