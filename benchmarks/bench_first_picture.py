@@ -21,14 +21,10 @@ from __future__ import annotations
 import argparse
 import gc
 import json
-import os
-import statistics
-import subprocess
 import sys
 import time
 
-from benchmarks.bench_worker_start import _busy_s
-from benchmarks.machine import machine_info
+from benchmarks.bench_worker_start import _busy_s, alternate_first_second
 
 CONTENDERS = ["freed", "held"]
 
@@ -65,25 +61,14 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(child(args.child)))
         return 0
 
-    runs: dict[str, list[dict]] = {c: [] for c in CONTENDERS}
-    for r in range(args.rounds):
-        for contender in CONTENDERS[r % 2 :] + CONTENDERS[: r % 2]:
-            cmd = [sys.executable, "-m", "benchmarks.bench_first_picture", "--child", contender]
-            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
-            if proc.returncode != 0:
-                raise RuntimeError(f"{contender} failed:\n{proc.stderr[-3000:]}")
-            runs[contender].append(json.loads(proc.stdout.strip().splitlines()[-1]))
-            print(contender, runs[contender][-1], flush=True)
-
-    keys = ("first", "second", "first_cpu", "second_cpu")
-    medians = {c: {k: statistics.median(run[k] for run in rs) for k in keys} for c, rs in runs.items()}
-    print(f"\n{args.rounds} rounds, medians (s): wall first / second env, machine CPU first / second env")
-    for c, m in medians.items():
-        print(f"{c:8s} {m['first']:6.2f} {m['second']:6.2f}   {m['first_cpu']:6.2f} {m['second_cpu']:6.2f}")
-    if args.out:
-        os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-        with open(args.out, "w") as f:
-            json.dump({"machine": machine_info(), "runs": runs, "medians": medians}, f, indent=1)
+    alternate_first_second(
+        "benchmarks.bench_first_picture",
+        CONTENDERS,
+        args.rounds,
+        [],
+        f"{args.rounds} rounds, medians (s): wall first / second env, machine CPU first / second env",
+        args.out,
+    )
     return 0
 
 

@@ -87,11 +87,28 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(child(args.child, args.n)))
         return 0
 
-    runs: dict[str, list[dict]] = {c: [] for c in args.contenders}
-    for r in range(args.rounds):
-        order = args.contenders[r % len(args.contenders) :] + args.contenders[: r % len(args.contenders)]
-        for contender in order:
-            cmd = [sys.executable, "-m", "benchmarks.bench_worker_start", "--child", contender, "--n", str(args.n)]
+    alternate_first_second(
+        "benchmarks.bench_worker_start",
+        args.contenders,
+        args.rounds,
+        ["--n", str(args.n)],
+        f"N = {args.n} workers, {args.rounds} rounds, medians (s): wall first / second, machine CPU first / second",
+        args.out,
+        n=args.n,
+    )
+    return 0
+
+
+def alternate_first_second(
+    module: str, contenders: list[str], rounds: int, child_args: list[str], title: str, out: str | None, **extra
+) -> dict:
+    """Runs ``python -m module --child <contender> *child_args`` once per contender per round, in
+    rotated order, each printing its ``first`` / ``second`` figures (and their ``_cpu``) as a JSON
+    line; prints and returns the medians (written with the runs to ``out`` as JSON, with ``extra``)."""
+    runs: dict[str, list[dict]] = {c: [] for c in contenders}
+    for r in range(rounds):
+        for contender in contenders[r % len(contenders) :] + contenders[: r % len(contenders)]:
+            cmd = [sys.executable, "-m", module, "--child", contender, *child_args]
             proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
             if proc.returncode != 0:
                 raise RuntimeError(f"{contender} failed:\n{proc.stderr[-3000:]}")
@@ -100,14 +117,14 @@ def main(argv: list[str] | None = None) -> int:
 
     keys = ("first", "second", "first_cpu", "second_cpu")
     medians = {c: {k: statistics.median(run[k] for run in rs) for k in keys} for c, rs in runs.items()}
-    print(f"\nN = {args.n} workers, {args.rounds} rounds, medians (s): wall first / second, machine CPU first / second")
+    print(f"\n{title}")
     for c, m in medians.items():
         print(f"{c:16s} {m['first']:6.2f} {m['second']:6.2f}   {m['first_cpu']:6.2f} {m['second_cpu']:6.2f}")
-    if args.out:
-        os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-        with open(args.out, "w") as f:
-            json.dump({"machine": machine_info(), "n": args.n, "runs": runs, "medians": medians}, f, indent=1)
-    return 0
+    if out:
+        os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
+        with open(out, "w") as f:
+            json.dump({"machine": machine_info(), **extra, "runs": runs, "medians": medians}, f, indent=1)
+    return medians
 
 
 if __name__ == "__main__":
