@@ -9,6 +9,10 @@ VENV        := .venv-nightly
 else
 VENV        := .venv
 endif
+# Python writes the bytecode of each module it imports without one (set-up compiles what the library
+# imports; this covers the rest and the repository's own files), where a machine sets
+# PYTHONDONTWRITEBYTECODE: otherwise every test process compiles them again.
+unexport PYTHONDONTWRITEBYTECODE
 PYTEST_ARGS ?=
 DEMO_ARGS   ?=
 # pytest-xdist (the `test` extra): WORKERS worker processes, one per core of the CI machine (2). In `make test`

@@ -9,7 +9,8 @@
 #    PyPI's CUDA build with its nvidia-* wheels, found in a local pip index where there is one)
 #    and `pip install -e ".[test,demo,distributed,docs,maniskill]"`
 #    (the `maniskill` extra: the ManiSkill 3.0.x release) in one resolve, then
-#    byte-compiles site-packages on all cores (compileall -j 0).
+#    writes the bytecode of what the library, its examples and its tests import (by importing it
+#    once; the make targets let Python write the rest's on first use).
 #    The install itself is uv's `uv pip install` (uv installed into the venv by pip first), with
 #    pip's index settings (`pip config list`: index URLs, find-links, constraints, cert) passed on
 #    by scripts/uv_args.py,
@@ -120,13 +121,31 @@ else
     reqs=(-c "$constraints" ${torch_req[@]+"${torch_req[@]}"} -e ".[$EXTRAS]" ${MANISKILL_REQ[@]+"${MANISKILL_REQ[@]}"})
     if ! uv_install "${reqs[@]}"; then
         [[ "${MANISKILL_TORCHRL_NO_UV:-0}" == 1 ]] || log "uv unavailable or failed (see above): installing with pip"
-        # --no-compile, then compileall -j 0 below: pip byte-compiles every installed file on one
-        # core (torch alone: ~20 s); compileall spreads the same work over all cores.
+        # --no-compile: pip byte-compiles all ~15,000 installed files (torch alone: ~20 s), of which
+        # the library's processes import about a third; those are compiled below.
         pip_q install --no-compile "${reqs[@]}"
     fi
-    log "compiling bytecode"
-    # -qq: files that are not Python 3 (templates some packages ship) are skipped, as pip skips them.
-    "$PY" -m compileall -qq -j 0 "$("$PY" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')" || true
+    log "compiling the bytecode of what the library imports"
+    # Importing writes the .pyc of each module imported (PYTHONDONTWRITEBYTECODE, which some machines
+    # set, would stop it), on one core: ~25 s for ~4,300 files, where compileall of the whole
+    # site-packages took ~43 s on 2 cores. A process that imports a module without its .pyc
+    # compiles it (with PYTHONDONTWRITEBYTECODE set, every time: ~22 s for this import instead of ~9 s).
+    env -u PYTHONDONTWRITEBYTECODE "$PY" - <<'EOF' || log "warning: an import failed (above): its bytecode is compiled on first use"
+import importlib, pkgutil
+
+import maniskill_torchrl
+
+names = ["torch", "tensordict", "tensordict.nn", "torchrl.envs", "torchrl.collectors", "torchrl.data",
+         "torchrl.modules", "torchrl.objectives", "torchrl.objectives.value", "mani_skill.envs",
+         "mani_skill.trajectory.replay_trajectory", "gymnasium", "matplotlib.pyplot", "imageio", "h5py",
+         "pytest", "xdist", "hypothesis"]
+names += [m.name for m in pkgutil.walk_packages(maniskill_torchrl.__path__, "maniskill_torchrl.")]
+for name in names:
+    try:
+        importlib.import_module(name)
+    except ImportError:
+        pass  # an optional dependency that is not installed: nothing to compile
+EOF
     # Exactly one ManiSkill distribution: the release and the nightly install the same files.
     "$PY" - <<'EOF' || die "expected exactly one of mani-skill / mani-skill-nightly in $VENV (see above); remove $VENV and re-run"
 import importlib.metadata as m, sys
