@@ -1,6 +1,6 @@
 # maniskill_torchrl developer targets. Run `make` for help.
 .DEFAULT_GOAL := help
-.PHONY: help setup test test-ray test-upstream test-cuda-double test-registry test-nightly lint docs demo bench clean gpu-kit gpu-check
+.PHONY: help setup test test-examples test-ray test-upstream test-cuda-double test-registry test-nightly lint docs demo bench clean gpu-kit gpu-check
 
 # MANISKILL=release (default: mani-skill 3.0.x, in .venv) or nightly (mani-skill-nightly, in .venv-nightly).
 MANISKILL   ?= release
@@ -19,12 +19,14 @@ DEMO_ARGS   ?=
 # a test file runs whole in one worker (loadfile), so that its module fixtures (envs, worker pools, subprocess
 # runs) are built once; the registry's and upstream's tests are independent (load). WORKERS=1: one process.
 WORKERS     ?= 2
-xdist        = $(if $(filter-out 0 1,$(WORKERS)),-n $(WORKERS) --dist $(1))
+# --no-loadscope-reorder: files in collection order (tests/conftest.py puts the slowest first), not by count.
+xdist        = $(if $(filter-out 0 1,$(WORKERS)),-n $(WORKERS) --dist $(1) --no-loadscope-reorder)
 
 help:
 	@echo "Targets:"
 	@echo "  make setup   create .venv and install the package (+ test, demo, distributed, docs, maniskill extras); checks Vulkan"
 	@echo "  make test    run the test suite, in 2 processes (PYTEST_ARGS=... passed to pytest; WORKERS=1: serially)"
+	@echo "  make test-examples  the examples end to end, as users run them: the demo CLI, PPO, SAC, BC, evaluation (tests/examples, ~1.5 min)"
 	@echo "  make test-ray  TorchRL's Ray collectors over the library's envs, on a local Ray instance (tests/examples/test_ray.py, ~1 min)"
 	@echo "  make test-upstream  the TorchRL pull request of upstream/ on a copy of the installed torchrl (tests/upstream, ~1.5 min)"
 	@echo "  make test-cuda-double  the library on a CUDA machine, under the CUDA double (tests/gpu/test_cuda_machine.py, ~2.5 min)"
@@ -43,12 +45,17 @@ help:
 setup:
 	@MANISKILL=$(MANISKILL) bash scripts/setup.sh
 
-# Their own targets, so that `make test` stays inside 5 minutes on 2 cores: the CUDA-double cases (a pytest
-# subprocess of their own, tests/gpu/test_cuda_machine.py) and Ray's (a local Ray instance whose actors
-# each import torch, TorchRL and ManiSkill: over a minute of CPU on 2 cores). CI runs both.
+# Their own targets, so that `make test` stays inside 5 minutes on 2 cores: the examples end to end
+# (subprocesses as users start them, each importing torch, TorchRL and ManiSkill and computing SAPIEN's
+# render tables for its videos: about 2.5 minutes of CPU), the CUDA-double cases (a pytest subprocess
+# of their own, tests/gpu/test_cuda_machine.py) and Ray's (a local Ray instance whose actors each
+# import torch, TorchRL and ManiSkill: over a minute of CPU on 2 cores). CI runs them all.
 test: setup lint
 	$(VENV)/bin/python -m pytest -q --durations=15 $(call xdist,loadfile) tests --ignore=tests/registry --ignore=tests/docs \
-		--ignore=tests/gpu/test_cuda_machine.py --ignore=tests/upstream --ignore=tests/examples/test_ray.py $(PYTEST_ARGS)
+		--ignore=tests/gpu/test_cuda_machine.py --ignore=tests/upstream --ignore=tests/examples $(PYTEST_ARGS)
+
+test-examples: setup
+	$(VENV)/bin/python -m pytest -q --durations=10 $(call xdist,loadfile) tests/examples --ignore=tests/examples/test_ray.py $(PYTEST_ARGS)
 
 test-ray: setup
 	$(VENV)/bin/python -m pytest -q --durations=5 tests/examples/test_ray.py $(PYTEST_ARGS)
