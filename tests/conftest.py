@@ -5,16 +5,18 @@ every comparison seeds every reset."""
 from __future__ import annotations
 
 import multiprocessing
+import sys
 import warnings
 from pathlib import Path
 
 import pytest
 
 
-def pytest_configure(config: pytest.Config) -> None:
-    """The set-up of every process that runs tests. Not in pytest-xdist's controller, which runs
-    none: it starts its workers without first importing torch and ManiSkill (about 9 s of CPU)."""
-    if getattr(config, "workerinput", None) is None and config.getoption("numprocesses", None):
+def _set_up_test_process() -> None:
+    """The set-up of a process that runs tests with the library in it: one whose collected test modules
+    imported torch. Not in one whose tests only start subprocesses (the CUDA double's outer process,
+    ``tests/upstream``'s, pytest-xdist's controller): about 7 s of CPU each, to import ManiSkill there."""
+    if "torch" not in sys.modules:
         return
     import mani_skill.envs  # noqa: F401  (registers the tasks)
     import torch
@@ -45,10 +47,13 @@ warnings.filterwarnings("ignore", module="mani_skill")
 _TESTS = Path(__file__).resolve().parent
 
 
-# The files that take longest (seconds in one of `make test`'s 2 processes; RESULTS.md, "Tested
-# versions"), run first: pytest-xdist hands out whole files in collection order (`--dist loadfile
-# --no-loadscope-reorder`), so the short ones fill in at the end and both processes end together.
+# The files that take longest (seconds in one of `make test`'s or `make test-examples`'s 2 processes;
+# RESULTS.md, "Tested versions"), run first: pytest-xdist hands out whole files in collection order
+# (`--dist loadfile --no-loadscope-reorder`), so the short ones fill in at the end and both processes
+# end together.
 SLOW_FIRST = (
+    "examples/test_examples.py",  # 75
+    "examples/test_evaluate.py",  # 55
     "wrappers/test_wrappers.py",  # 71
     "envs/test_env.py",  # 63
     "engines/test_cpu_vector.py",  # 51
@@ -76,13 +81,14 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:
-    """Each test module with a selected test that defines ``start_early()`` gets it called once,
-    right after collection (not with ``--collect-only``): ``test_hang.py`` starts its script of
-    several processes there, which then runs beside the tests before it instead of after them.
-    Under pytest-xdist every worker calls it, and ``test_hang.start_early`` starts its script in
-    the first worker only (once per test run)."""
+    """The process's set-up (:func:`_set_up_test_process`); then each test module with a selected
+    test that defines ``start_early()`` gets it called once, right after collection (not with
+    ``--collect-only``): ``test_hang.py`` starts its script of several processes there, which then
+    runs beside the tests before it instead of after them. Under pytest-xdist every worker calls
+    it, and ``test_hang.start_early`` starts its script in the first worker only (once per test run)."""
     if session.config.option.collectonly:
         return
+    _set_up_test_process()
     started = set()
     for item in session.items:
         module = getattr(item, "module", None)

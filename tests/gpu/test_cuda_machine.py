@@ -15,8 +15,11 @@ import importlib.util
 import os
 import subprocess
 import sys
+from pathlib import Path
 
-from support.helpers import ROOT
+# Not support.helpers's: that imports torch, and this process only starts the subprocess (tests/conftest.py
+# then skips its set-up here).
+ROOT = Path(__file__).resolve().parents[2]
 
 #: Run together, in one pytest subprocess; with pytest-xdist, each file in a worker of its own (two
 #: start-ups of torch, TorchRL and ManiSkill, side by side on 2 cores), each worker under the double too.
