@@ -127,7 +127,7 @@ else
     fi
     log "compiling the bytecode of what the library imports"
     # Importing writes the .pyc of each module imported (PYTHONDONTWRITEBYTECODE, which some machines
-    # set, would stop it), on one core: ~25 s for ~4,300 files, where compileall of the whole
+    # set, would stop it), on one core: ~25 s for ~4,600 files, where compileall of the whole
     # site-packages took ~43 s on 2 cores. A process that imports a module without its .pyc
     # compiles it (with PYTHONDONTWRITEBYTECODE set, every time: ~22 s for this import instead of ~9 s).
     env -u PYTHONDONTWRITEBYTECODE "$PY" - <<'EOF' || log "warning: an import failed (above): its bytecode is compiled on first use"

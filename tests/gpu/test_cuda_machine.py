@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 #: Run together, in one pytest subprocess. In one process, not pytest-xdist's two: the cases' env
 #: workers already keep 2 cores busy, and a second test process only adds its start-up (torch, TorchRL,
-#: ManiSkill) and its own BRDF table: beside `make test-upstream`, as CI runs it, 136 s instead of 174 s.
+#: ManiSkill) and its own BRDF table: beside `make test-upstream`, as CI runs it, 131 s instead of 174 s.
 HERE = ROOT / "tests" / "gpu"
 CASES = [HERE / "cuda_machine_cases.py", HERE / "cuda_device_cases.py"]
 
