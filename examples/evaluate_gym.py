@@ -58,8 +58,10 @@ def make_env(
 
     import mani_skill.envs  # noqa: F401  (registers the tasks in the worker)
 
-    # was: from mani_skill.utils.wrappers import ActionRepeatWrapper, CPUGymWrapper
-    from maniskill_torchrl.wrappers import ActionRepeatWrapper, CPUGymWrapper
+    # was: from mani_skill.utils.wrappers.action_repeat import ActionRepeatWrapper
+    #      from mani_skill.utils.wrappers.gymnasium import CPUGymWrapper
+    from maniskill_torchrl.wrappers.action_repeat import ActionRepeatWrapper
+    from maniskill_torchrl.wrappers.gymnasium import CPUGymWrapper
 
     warnings.filterwarnings("ignore", message=".*precision lowered by casting.*")
     kwargs: dict[str, Any] = {"num_envs": 1, "obs_mode": obs_mode, "sim_backend": "physx_cpu"}

@@ -2,11 +2,13 @@
 
 Before::
 
-    from mani_skill.utils.wrappers import ActionRepeatWrapper, CPUGymWrapper
+    from mani_skill.utils.wrappers.action_repeat import ActionRepeatWrapper
+    from mani_skill.utils.wrappers.gymnasium import CPUGymWrapper
 
 After::
 
-    from maniskill_torchrl.wrappers import ActionRepeatWrapper, CPUGymWrapper
+    from maniskill_torchrl.wrappers.action_repeat import ActionRepeatWrapper
+    from maniskill_torchrl.wrappers.gymnasium import CPUGymWrapper
 
 This script runs the same seeded loop (``gym.make`` -> ``ActionRepeatWrapper``
 -> ``CPUGymWrapper(record_metrics=True)``, seeded resets, seeded random

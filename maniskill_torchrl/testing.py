@@ -269,7 +269,7 @@ def _compare_shim(env_id: str, steps: int, seed: int, maniskill_kwargs: dict, wh
     import gymnasium as gym
     from mani_skill.utils.wrappers import CPUGymWrapper as Theirs
 
-    from maniskill_torchrl.wrappers.cpu_gym_wrapper import CPUGymWrapper as Ours
+    from maniskill_torchrl.wrappers.gymnasium import CPUGymWrapper as Ours
 
     kwargs = dict(maniskill_kwargs, num_envs=1)
     theirs = Theirs(gym.make(env_id, **kwargs), record_metrics=True)

@@ -3,9 +3,9 @@
 Change ``mani_skill.utils.wrappers`` to ``maniskill_torchrl.wrappers`` and everything else stays
 the same, bit for bit:
 
-- :class:`CPUGymWrapper` (``wrappers/cpu_gym_wrapper.py``): one CPU env with the unbatched numpy
+- :class:`CPUGymWrapper` (``wrappers/gymnasium.py``): one CPU env with the unbatched numpy
   gymnasium API, optional episode metrics.
-- :class:`ActionRepeatWrapper` (``wrappers/action_repeat_wrapper.py``): masked action repeat on
+- :class:`ActionRepeatWrapper` (``wrappers/action_repeat.py``): masked action repeat on
   batched torch data.
 
 Both are ``gymnasium.Wrapper`` subclasses on the same core as the TorchRL transforms
@@ -17,7 +17,7 @@ builds one from a task id); the TorchRL counterparts of these two are the transf
 and :class:`~maniskill_torchrl.transforms.ActionRepeat`.
 """
 
-from maniskill_torchrl.wrappers.action_repeat_wrapper import ActionRepeatWrapper
-from maniskill_torchrl.wrappers.cpu_gym_wrapper import CPUGymWrapper
+from maniskill_torchrl.wrappers.action_repeat import ActionRepeatWrapper
+from maniskill_torchrl.wrappers.gymnasium import CPUGymWrapper
 
 __all__ = ["ActionRepeatWrapper", "CPUGymWrapper"]

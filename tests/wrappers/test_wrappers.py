@@ -20,8 +20,8 @@ from mani_skill.utils.wrappers import ActionRepeatWrapper as MSActionRepeatWrapp
 from mani_skill.utils.wrappers import CPUGymWrapper as MSCPUGymWrapper
 from mani_skill.utils.wrappers import RecordEpisode
 
-import maniskill_torchrl.wrappers.action_repeat_wrapper as action_repeat_module
-import maniskill_torchrl.wrappers.cpu_gym_wrapper as cpu_gym_wrapper_module
+import maniskill_torchrl.wrappers.action_repeat as action_repeat_module
+import maniskill_torchrl.wrappers.gymnasium as gymnasium_module
 from maniskill_torchrl._internal.episode_stats import EpisodeStats
 from maniskill_torchrl.wrappers import ActionRepeatWrapper, CPUGymWrapper
 from maniskill_torchrl.wrappers._common import np_unbatch
@@ -427,6 +427,6 @@ def test_errors_repeat(env_pair):
 
 # ----------------------------------------------------------------------------- docs
 def test_docstring_examples():
-    for module in (cpu_gym_wrapper_module, action_repeat_module):
+    for module in (gymnasium_module, action_repeat_module):
         result = doctest.testmod(module, optionflags=doctest.ELLIPSIS)
         assert result.attempted > 0 and result.failed == 0, module.__name__
