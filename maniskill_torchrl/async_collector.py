@@ -10,17 +10,22 @@ factories and cannot take a :class:`~maniskill_torchrl.ManiSkillAsyncEnvPool`.
 
 from __future__ import annotations
 
+import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterator
 from typing import Any
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
+from torch import nn
 from torchrl.collectors import BaseCollector
 from torchrl.envs import AsyncEnvPool
 from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.modules import RandomPolicy
 
 __all__ = ["AsyncPoolCollector"]
+
+_TRAJ_IDS = ("collector", "traj_ids")
 
 
 class AsyncPoolCollector(BaseCollector):
@@ -30,8 +35,9 @@ class AsyncPoolCollector(BaseCollector):
         env (AsyncEnvPool): the pool, e.g. a :class:`~maniskill_torchrl.ManiSkillAsyncEnvPool`
             (TorchRL's own pools work too).
         policy (Callable[[TensorDictBase], TensorDictBase], optional): reads the roots of the envs
-            received (batch ``[k]``, ``k`` varies) and writes ``"action"``. None: random actions
-            from the pool's action spec.
+            received (batch ``[k]``, ``k`` varies) and writes ``"action"``. None, or a TorchRL
+            :class:`~torchrl.modules.RandomPolicy` (whose spec may be the pool's batched one):
+            random actions from the pool's action spec, one row per env received.
 
     Keyword Args:
         frames_per_batch (int): transitions per yielded batch.
@@ -42,10 +48,22 @@ class AsyncPoolCollector(BaseCollector):
             ``ExplorationType.RANDOM``.
 
     Each yielded batch is ``[frames_per_batch]`` transitions (the root, ``"action"``,
-    ``"next"`` and ``"env_index"``) in the order they finished, not ``[N, T]``: the envs'
-    steps are out of lockstep. The transitions of one env keep their order; select them with
-    ``batch[batch["env_index"] == i]``. A trajectory ends where ``("next", "done")`` is True;
-    the env's next transition starts its next episode (the pool resets it at once).
+    ``"next"``, ``"env_index"``, ``("collector", "traj_ids")`` and ``"step_count"`` /
+    ``("next", "step_count")`` as TorchRL's ``StepCounter`` writes them) in the order they
+    finished, not ``[N, T]``: the envs' steps are out of lockstep. The transitions of one env
+    keep their order; a trajectory is one ``traj_ids`` value (TorchRL's collectors' key:
+    ``split_trajs`` and ``SliceSampler(traj_key=("collector", "traj_ids"))`` take it), and
+    ends where ``("next", "done")`` is True; the env's next transition starts its next
+    episode (the pool resets it at once).
+
+    Episodes carry on from one ``iter()`` to the next: the steps under way when an iteration
+    stops are received and kept for the next batch, and nothing is dropped. If the pool was
+    stepped or reset by another caller in between, every env restarts, and the last kept
+    transition of each unfinished episode is marked ``("next", "truncated")``. An exception (in
+    the policy, say) leaves the pool open and idle: the collector only closes it in
+    :meth:`shutdown`.
+
+    :meth:`cycle_stats` says where the main process spends each cycle (wait, policy, the rest).
 
     Examples:
         >>> from maniskill_torchrl import AsyncPoolCollector, ManiSkillAsyncEnvPool
@@ -77,18 +95,35 @@ class AsyncPoolCollector(BaseCollector):
         if not 1 <= min_get <= env.num_envs:
             raise ValueError(f"min_get must be in [1, num_envs={env.num_envs}], got {min_get!r}.")
         self.env = env
-        self.policy = policy
         self.frames_per_batch = self.requested_frames_per_batch = int(frames_per_batch)
         self.total_frames = int(total_frames)
         self.min_get = int(min_get)
         self.exploration_type = exploration_type
         self.trajs_per_batch = None
         self._frames = 0
-        # policy=None: random actions, drawn from the leaf spec (a Composite's rand builds a TensorDict)
+        # policy=None or a RandomPolicy: random actions, one row per env received, drawn from the
+        # unbatched leaf specs (a Composite's rand builds a TensorDict; the pool's spec is [N, ...]).
         self._actions = None
-        if policy is None:
-            self._actions = [(key, env.full_action_spec_unbatched[key]) for key in env.action_keys]
+        if policy is None or isinstance(policy, RandomPolicy):
+            spec = env.full_action_spec if policy is None or policy.action_spec is None else policy.action_spec
+            one = env.full_action_spec_unbatched
+            self._actions = [(key, _unbatched(spec[key], one[key])) for key in env.action_keys]
+            policy = None
+        self.policy = policy
+        n = env.num_envs
+        # Per env: its trajectory id and the steps of its episode so far; the next new id.
+        self._traj_ids = torch.arange(n)
+        self._next_traj = n
+        self._step_count = torch.zeros(n, 1, dtype=torch.int64)
+        # Between iterations: transitions received and not yet yielded, roots not yet acted on,
+        # and the pool's count of foreign steps and resets when the episodes were last under way.
+        self._kept: list[TensorDictBase] = []
+        self._held: list[TensorDictBase] = []
+        self._epoch: int | None = None
+        self._running = False
+        self._stats = {"cycles": 0, "wait": 0.0, "policy": 0.0, "total": 0.0}
 
+    # ------------------------------------------------------------------ the cycle
     def _act(self, roots: TensorDictBase) -> None:
         """The policy's actions for ``roots``, sent to their envs."""
         if self._actions is None:
@@ -99,38 +134,156 @@ class AsyncPoolCollector(BaseCollector):
                 roots.set(key, spec.rand(roots.shape))
         self.env.async_step_and_maybe_reset_send(roots, env_index=roots["env_index"].tolist())
 
+    def _mark(self, transitions: TensorDictBase) -> None:
+        """Trajectory ids and step counts, then new ids for the envs whose episode ended."""
+        index = transitions["env_index"]
+        counts = self._step_count[index]
+        transitions.set(_TRAJ_IDS, self._traj_ids[index])
+        transitions.set("step_count", counts)
+        transitions.set(("next", "step_count"), counts + 1)
+        done = transitions.get(("next", "done")).reshape(-1)
+        self._step_count[index] = torch.where(done.unsqueeze(-1), 0, counts + 1)
+        if done.any():
+            ended = index[done]
+            self._traj_ids[ended] = torch.arange(self._next_traj, self._next_traj + len(ended))
+            self._next_traj += len(ended)
+
+    def _start(self) -> None:
+        """Every env's episodes start (or go on from the last iteration, when nothing came between)."""
+        pool = self.env
+        resumed = self._running and getattr(pool, "_epoch", None) == self._epoch
+        if not resumed:
+            self._truncate_kept()
+            self._held = []
+            everyone = list(range(pool.num_envs))
+            pool.async_reset_send(env_index=everyone)
+            self._held = [pool.async_reset_recv(min_get=pool.num_envs)]
+            self._step_count.zero_()
+            self._epoch = getattr(pool, "_epoch", None)
+            self._running = True
+        if self._held:
+            roots = torch.cat(self._held) if len(self._held) > 1 else self._held[0]
+            self._held = []
+            try:
+                self._act(roots)
+            except BaseException:
+                self._held = [roots]
+                raise
+
+    def _truncate_kept(self) -> None:
+        """The kept transitions' unfinished episodes end here: their last transition is truncated."""
+        if not self._kept:
+            return
+        kept = torch.cat(self._kept) if len(self._kept) > 1 else self._kept[0]
+        index = kept["env_index"]
+        last = torch.zeros(len(kept), dtype=torch.bool)
+        for i in index.unique().tolist():
+            last[(index == i).nonzero()[-1]] = True
+        cut = last & ~kept["next", "done"].reshape(-1)
+        kept["next", "truncated"][cut] = True
+        kept["next", "done"][cut] = True
+        self._kept = [kept]
+
     def iterator(self) -> Iterator[TensorDictBase]:
         pool = self.env
-        everyone = list(range(pool.num_envs))
-        pool.async_reset_send(env_index=everyone)
-        self._act(pool.async_reset_recv(min_get=pool.num_envs))
-        chunks: list[TensorDictBase] = []
-        held = 0
+        stats = self._stats
+        clock = time.perf_counter
+        self._start()
+        chunks, self._kept = self._kept, []
+        held = sum(c.shape[0] for c in chunks)
         try:
             while self.total_frames < 0 or self._frames < self.total_frames:
+                t0 = clock()
                 transitions, roots = pool.async_step_and_maybe_reset_recv(min_get=self.min_get)
-                self._act(roots)  # the envs step again while this process does the rest
-                chunks.append(transitions)
-                held += transitions.shape[0]
+                t1 = clock()
+                try:
+                    self._act(roots)  # the envs step again while this process does the rest
+                except BaseException:
+                    self._held.append(roots)
+                    raise
+                finally:
+                    t2 = clock()
+                    self._mark(transitions)
+                    chunks.append(transitions)
+                    held += transitions.shape[0]
+                batches = []
                 while held >= self.frames_per_batch:
                     batch = torch.cat(chunks) if len(chunks) > 1 else chunks[0]
-                    out, rest = batch[: self.frames_per_batch], batch[self.frames_per_batch :]
+                    batches.append(batch[: self.frames_per_batch])
+                    rest = batch[self.frames_per_batch :]
                     chunks, held = ([rest] if rest.shape[0] else []), rest.shape[0]
+                stats["cycles"] += 1
+                stats["wait"] += t1 - t0
+                stats["policy"] += t2 - t1
+                stats["total"] += clock() - t0
+                for out in batches:
                     self._frames += out.shape[0]
                     yield out
                     if 0 <= self.total_frames <= self._frames:
                         return
         finally:
+            self._kept = chunks
             self._drain()
 
     def _drain(self) -> None:
-        """Receives the steps still under way, so that the pool can reset or step in lockstep."""
+        """Receives the steps still under way and keeps them (and their roots) for the next
+        iteration, so that the pool is idle: it can reset, step in lockstep, or close."""
         pool = self.env
         pending = getattr(pool, "_current_step_reset", 0)  # TorchRL's pools count them there
         if pending:
-            pool.async_step_and_maybe_reset_recv(min_get=pending)
+            transitions, roots = pool.async_step_and_maybe_reset_recv(min_get=pending)
+            self._mark(transitions)
+            self._kept.append(transitions)
+            self._held.append(roots)
+        self._epoch = getattr(pool, "_epoch", None)
+
+    def __iter__(self) -> Iterator[TensorDictBase]:
+        # BaseCollector's shuts the collector (and closes the env) on an exception: the pool is the
+        # user's, and stays open and idle (the iterator drains it).
+        self._iteration_started = True
+        yield from self.iterator()
+
+    def cycle_stats(self, reset: bool = False) -> dict[str, float]:
+        """Mean seconds per cycle (one receive, the policy, one send and the bookkeeping) in this
+        process: ``wait`` (for the envs), ``policy``, ``other`` (the rest: the collector's and the
+        pool's own work, the critical path's overhead), and ``cycles``."""
+        s = self._stats
+        n = max(s["cycles"], 1)
+        out = {
+            "cycles": s["cycles"],
+            "wait": s["wait"] / n,
+            "policy": s["policy"] / n,
+            "other": (s["total"] - s["wait"] - s["policy"]) / n,
+        }
+        if reset:
+            self._stats = {"cycles": 0, "wait": 0.0, "policy": 0.0, "total": 0.0}
+        return out
+
+    # ------------------------------------------------------------------ TorchRL's collector API
+    def update_policy_weights_(
+        self,
+        policy_or_weights: TensorDictBase | nn.Module | dict | None = None,
+        *,
+        weights: TensorDictBase | dict | None = None,
+        policy: nn.Module | None = None,
+        **kwargs: Any,
+    ) -> None:
+        """The policy runs in this process and is the trained module itself: nothing to do unless
+        other weights are given (a module, a TensorDict of parameters, or a ``state_dict``)."""
+        given = next((w for w in (policy_or_weights, weights, policy) if w is not None), None)
+        if given is None or given is self.policy:
+            return
+        if not isinstance(self.policy, nn.Module):
+            raise TypeError(f"update_policy_weights_: the policy ({type(self.policy).__name__}) has no weights.")
+        if isinstance(given, nn.Module):
+            given = TensorDict.from_module(given)
+        if isinstance(given, TensorDictBase):
+            given.to_module(self.policy)
+        else:
+            self.policy.load_state_dict(given)
 
     def set_seed(self, seed: int, static_seed: bool = False) -> int:
+        self._running = False  # new seeds: new episodes
         return self.env.set_seed(seed, static_seed=static_seed)
 
     def state_dict(self) -> OrderedDict:
@@ -151,3 +304,8 @@ class AsyncPoolCollector(BaseCollector):
 
     def __getstate__(self) -> Any:
         raise TypeError("AsyncPoolCollector drives live worker processes and cannot be pickled.")
+
+
+def _unbatched(spec: Any, one: Any) -> Any:
+    """``spec`` for one env (``one``'s shape): the pool's ``[num_envs, ...]`` specs lose their first dim."""
+    return spec if spec.shape == one.shape else spec[0]

@@ -11,8 +11,8 @@ of the library.
 from __future__ import annotations
 
 import multiprocessing
-import multiprocessing.connection
 import pickle
+import selectors
 from collections.abc import Callable
 from typing import Any
 
@@ -49,6 +49,11 @@ class WorkerPool:
             self.pipes.append(mine)
             process.start()
             theirs.close()  # the worker's end lives in the worker only: its death closes the pipe
+        # One selector over every pipe, registered once (split phase): a wait is one epoll call, where
+        # multiprocessing.connection.wait registers each pipe again on every call.
+        self._selector = selectors.DefaultSelector()
+        for i, pipe in enumerate(self.pipes):
+            self._selector.register(pipe, selectors.EVENT_READ, i)
         self.closed = False
 
     def ready(self) -> list[tuple]:
@@ -79,12 +84,10 @@ class WorkerPool:
         for i in positions:
             self.pipes[i].send_bytes(message)
 
-    def answered(self, positions: list[int], timeout: float | None) -> list[int]:
-        """Those of ``positions`` whose worker has answered (waits up to ``timeout`` s for one;
-        None: until one has), in ``positions``' order."""
-        pipes = {id(self.pipes[i]): i for i in positions}
-        ready = {pipes[id(c)] for c in multiprocessing.connection.wait([self.pipes[i] for i in positions], timeout)}
-        return [i for i in positions if i in ready]
+    def readable(self, timeout: float | None) -> list[int]:
+        """The positions whose worker has an answer to read (waits up to ``timeout`` s for one;
+        None: until one has; 0: a poll)."""
+        return [key.data for key, _ in self._selector.select(timeout)]
 
     def take_done(self, i: int) -> None:
         """Worker ``i``'s answer to a step: :data:`DONE`, or its failure raised."""
@@ -148,9 +151,15 @@ class WorkerPool:
             "what was sent could not be pickled to the workers",
         )
 
+    def _close_selector(self) -> None:
+        if self._selector is not None:
+            self._selector.close()
+            self._selector = None
+
     def stop(self) -> None:
         """Terminates every live worker and closes the pipes (after a failure)."""
         self.closed = True
+        self._close_selector()
         for process in self.processes:
             if process.is_alive():
                 process.terminate()

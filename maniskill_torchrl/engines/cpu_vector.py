@@ -31,6 +31,7 @@ from __future__ import annotations
 import os
 import pickle
 import time
+import warnings
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -57,7 +58,24 @@ from maniskill_torchrl.engines._worker import (
     zeros_tree,
 )
 
-__all__ = ["CPUVectorEnv", "in_process_default"]
+__all__ = ["CPUVectorEnv", "check_gather_args", "in_process_default"]
+
+# What a sub-env has under way in split phase (one per sub-env).
+IDLE, STEPPING, STEPPING_RESET, RESETTING = 0, 1, 2, 3
+_KINDS = {"step": STEPPING, "step_reset": STEPPING_RESET, "reset": RESETTING}
+_KIND_NAMES = {v: k for k, v in _KINDS.items()}
+
+
+def check_gather_args(min_get: int, max_get: int | None, timeout: float | None) -> None:
+    """TorchRL's ``AsyncEnvPool`` rules for a receive's ``min_get``, ``max_get`` and ``timeout``."""
+    if min_get < 1:
+        raise ValueError(f"min_get must be positive, got {min_get}.")
+    if max_get is not None and max_get < min_get:
+        raise ValueError(
+            f"max_get must be greater than or equal to min_get, got min_get={min_get} and max_get={max_get}."
+        )
+    if timeout is not None and timeout < 0:
+        raise ValueError(f"timeout must be non-negative, got {timeout}.")
 
 # What a worker imports before it makes its env (torch, gymnasium, ManiSkill's tasks): most of its
 # start. The forkserver imports them once; the workers it forks start without (RESULTS.md, "Worker start").
@@ -190,10 +208,19 @@ class CPUVectorEnv:
         #: whether sub-env 0 runs in this process
         self.in_process = bool(in_process)
         self.split_phase = bool(split_phase)
-        # Split phase: what each busy sub-env was sent ("step" / "reset"), and the sub-envs whose
-        # answer has arrived but was not returned yet (per kind, in arrival order).
-        self._busy: dict[int, str] = {}
-        self._arrived: dict[str, list[int]] = {"step": [], "reset": []}
+        # Split phase, one entry per sub-env: the call under way (IDLE, STEPPING, STEPPING_RESET,
+        # RESETTING), whether its answer has been read (and its arrival number, for the order of
+        # receipt), when it was sent (the watchdog) and whether it was warned about.
+        self._state = np.zeros(int(num_envs), np.int8)
+        self._arrived = np.zeros(int(num_envs), np.bool_)
+        self._arrival = np.zeros(int(num_envs), np.int64)
+        self._arrivals = 0
+        self._sent_at = np.zeros(int(num_envs))
+        self._warned = np.zeros(int(num_envs), np.bool_)
+        #: split phase: seconds a sub-env may take over one call before a warning, then before an
+        #: error that closes the env (a stuck worker); None: never.
+        self.warn_after: float | None = 30.0
+        self.fail_after: float | None = 300.0
         self._pool: WorkerPool | None = None
         self._local = None
         self._block: SharedBlock | None = None
@@ -259,9 +286,9 @@ class CPUVectorEnv:
         ``here=None``: sub-env 0 does not. The workers' answers are collected even when sub-env
         0 raises, so that none is left pending; a worker that raised or died closes the env."""
         self._check_open(call)
-        if self._busy:
+        if self._state.any():
             raise RuntimeError(
-                f"{self!r}: {call}() steps every sub-env together, and sub-envs {sorted(self._busy)} have a "
+                f"{self!r}: {call}() steps every sub-env together, and sub-envs {sorted(self.pending)} have a "
                 "split-phase call pending: receive them first (step_recv / reset_recv)."
             )
         pool = self._pool if send is not None else None
@@ -313,7 +340,7 @@ class CPUVectorEnv:
         reset_seeds: Sequence[int | None] | None = None,
     ) -> None:
         """Starts a step of the sub-envs ``env_idx`` with their ``[k, ...]`` actions, and returns
-        at once; :meth:`step_recv` returns the results.
+        at once; :meth:`step_recv` (with the same ``autoreset``) returns the results.
 
         ``autoreset=True``: a sub-env whose step ends its episode (terminated or truncated)
         resets right away in its worker, with its seed in ``reset_seeds`` (one per sub-env of
@@ -331,7 +358,7 @@ class CPUVectorEnv:
             self._pool.wake_some(rows.tolist(), STEP_RESET if autoreset else STEP)
         except (EOFError, OSError) as err:
             raise self._worker_failed("step_send", err) from err
-        self._busy.update(dict.fromkeys(rows.tolist(), "step"))
+        self._sent(rows, STEPPING_RESET if autoreset else STEPPING)
 
     def step_recv(
         self,
@@ -340,23 +367,25 @@ class CPUVectorEnv:
         max_get: int | None = None,
         timeout: float | None = None,
         env_idx: Sequence[int] | None = None,
+        autoreset: bool = False,
     ) -> tuple[np.ndarray, tuple, tuple | None]:
-        """The results of sent steps: ``(env_idx, (obs, reward, terminated, truncated, info),
-        reset)``, each ``[k, ...]``, in sub-env order.
+        """The results of the steps sent with this ``autoreset``: ``(env_idx, (obs, reward,
+        terminated, truncated, info), reset)``, each ``[k, ...]``, in sub-env order.
 
-        Waits until at least ``min_get`` have finished (all pending ones if fewer are pending),
-        then returns every finished one, at most ``max_get``; with ``env_idx``, waits for those
-        sub-envs and returns them only. ``timeout``: seconds for the whole
-        call; with fewer than ``min_get`` by then, raises :class:`TimeoutError` and keeps what
-        arrived for the next call. ``reset`` (steps sent with ``autoreset=True``, else None) is
-        ``(done, obs, info)``: the ``[k]`` bool mask of the sub-envs that ended an episode and
-        reset, and their reset's observations and infos, ``[done.sum(), ...]``.
+        Waits until at least ``min_get`` have finished, then returns every finished one (TorchRL's
+        ``AsyncEnvPool`` rules): at most ``max_get``; with a ``timeout`` (seconds for the whole
+        call), what finishes until then, and :class:`TimeoutError` if fewer than ``min_get`` did
+        (what arrived is kept for the next call). With ``env_idx``, waits for those sub-envs
+        and returns them only. ``reset`` (``autoreset=True``, else None) is ``(done, obs,
+        info)``: the ``[k]`` bool mask of the sub-envs that ended an episode and reset, and
+        their reset's observations and infos, ``[done.sum(), ...]``.
         """
-        rows = self._receive("step", min_get, max_get, timeout, env_idx)
+        kind = STEPPING_RESET if autoreset else STEPPING
+        rows = self._receive(kind, min_get, max_get, timeout, env_idx)
         block = self._block
         step = block.read_rows(rows)
         reset = None
-        if block.layout.autoreset:
+        if kind == STEPPING_RESET:
             done = (step[TERMINATED] | step[TRUNCATED]).numpy()
             again = block.read_rows(rows[done] + self.num_envs)
             reset = (torch.from_numpy(done), again[OBS], again[INFO])
@@ -374,7 +403,7 @@ class CPUVectorEnv:
                 self._pool.send(i, "reset", seed=None if seed is None else int(seed), options=None)
         except (EOFError, OSError) as err:
             raise self._worker_failed("reset_send", err) from err
-        self._busy.update(dict.fromkeys(rows.tolist(), "reset"))
+        self._sent(rows, RESETTING)
 
     def reset_recv(
         self,
@@ -386,7 +415,7 @@ class CPUVectorEnv:
     ) -> tuple[np.ndarray, Any, dict]:
         """The sent resets that are done: ``(env_idx, obs, info)``, ``[k, ...]``; ``min_get``,
         ``max_get``, ``timeout`` and ``env_idx`` as in :meth:`step_recv`."""
-        rows = self._receive("reset", min_get, max_get, timeout, env_idx)
+        rows = self._receive(RESETTING, min_get, max_get, timeout, env_idx)
         step = self._block.read_rows(rows)
         return rows, step[OBS], step[INFO]
 
@@ -397,8 +426,40 @@ class CPUVectorEnv:
 
     @property
     def pending(self) -> dict[int, str]:
-        """The sub-envs with a split-phase call under way, and which (``"step"``, ``"reset"``)."""
-        return dict(self._busy)
+        """The sub-envs with a split-phase call under way, and which (``"step"``,
+        ``"step_reset"``, ``"reset"``)."""
+        return {i: _KIND_NAMES[k] for i, k in enumerate(self._state.tolist()) if k}
+
+    def count_pending(self, kind: str) -> int:
+        """How many sub-envs have a ``kind`` call (``"step"``, ``"step_reset"``, ``"reset"``) under way."""
+        return int(np.count_nonzero(self._state == _KINDS[kind]))
+
+    def answered(self, index: int) -> bool:
+        """Whether sub-env ``index``'s answer to its split-phase call has arrived (read here if it
+        is ready); a receive then returns it without waiting."""
+        self._check_open("receive")
+        if self._arrived[index]:
+            return True
+        if self._state[index] == IDLE:
+            raise RuntimeError(f"{self!r}: sub-env {index} has no split-phase call under way: send one first.")
+        if self._pool.pipes[index].poll(0):
+            self._read_answers([index])
+            return True
+        self._watch(time.monotonic())
+        return False
+
+    def wait_readable(self, index: int, timeout: float) -> None:
+        """Waits up to ``timeout`` s for sub-env ``index``'s worker to answer, without reading it
+        (one thread per sub-env may wait so, each on its own)."""
+        try:
+            self._pool.pipes[index].poll(timeout)
+        except (OSError, EOFError, ValueError):  # closed meanwhile: answered() says so
+            pass
+
+    def _sent(self, rows: np.ndarray, kind: int) -> None:
+        self._state[rows] = kind
+        self._sent_at[rows] = time.monotonic()
+        self._warned[rows] = False
 
     def _idle_rows(self, call: str, env_idx: Sequence[int]) -> np.ndarray:
         self._check_open(call)
@@ -407,66 +468,138 @@ class CPUVectorEnv:
         rows = np.asarray(torch.as_tensor(env_idx, device="cpu").reshape(-1), dtype=np.int64)
         if rows.size and (rows.min() < 0 or rows.max() >= self.num_envs):
             raise IndexError(f"{call}: sub-env indices {rows.tolist()} out of range for {self.num_envs} sub-envs.")
-        if len(set(rows.tolist())) != rows.size:
+        if rows.size > 1 and np.unique(rows).size != rows.size:
             raise ValueError(f"{call}: sub-env indices {rows.tolist()} repeat an index.")
-        busy = [i for i in rows.tolist() if i in self._busy]
-        if busy:
+        busy = self._state[rows]
+        if busy.any():
+            i = int(rows[np.flatnonzero(busy)[0]])
             raise RuntimeError(
-                f"{call}: sub-envs {busy} still have a {self._busy[busy[0]]} under way: receive it first."
+                f"{call}: sub-envs {rows[busy != 0].tolist()} still have a {_KIND_NAMES[int(self._state[i])]} "
+                "under way: receive it first."
             )
         return rows
 
+    def _read_answers(self, positions: list[int]) -> None:
+        """Reads the answers of the workers at ``positions`` (whatever each was sent); a worker that
+        failed closes the env."""
+        state, pool = self._state, self._pool
+        try:
+            for i in positions:
+                if state[i] == RESETTING:
+                    pool.take_answer(i)
+                else:
+                    pool.take_done(i)
+                self._arrived[i] = True
+                self._arrival[i] = self._arrivals
+                self._arrivals += 1
+        except (EOFError, OSError, WorkerFailure) as err:
+            raise self._worker_failed("receive", err) from getattr(err, "error", None) or err
+
     def _receive(
-        self, kind: str, min_get: int, max_get: int | None, timeout: float | None, only: Sequence[int] | None
+        self, kind: int, min_get: int, max_get: int | None, timeout: float | None, only: Sequence[int] | None
     ) -> np.ndarray:
         """Waits for answers of the sub-envs sent ``kind`` (of those in ``only``, if given); returns
         the rows to hand out (see :meth:`step_recv`), in sub-env order, and marks them idle."""
-        self._check_open(f"{kind}_recv")
-        arrived = self._arrived[kind]
-        sent = [i for i, k in self._busy.items() if k == kind]
+        name = _KIND_NAMES[kind]
+        self._check_open(f"{name}_recv")
+        mine = self._state == kind
         if only is not None:
-            only = np.asarray(torch.as_tensor(only, device="cpu").reshape(-1)).tolist()
-            missing = [i for i in only if i not in sent]
-            if missing:
+            rows = np.asarray(torch.as_tensor(only, device="cpu").reshape(-1), dtype=np.int64)
+            missing = rows[~mine[rows]]
+            if missing.size:
                 raise RuntimeError(
-                    f"{self!r}: {kind}_recv(env_idx={only}): sub-envs {missing} have no {kind} under way."
+                    f"{self!r}: {name}_recv(env_idx={rows.tolist()}): sub-envs {missing.tolist()} have no {name} "
+                    "under way."
                 )
-            sent, min_get, max_get = only, len(only), len(only)
-        if not sent:
-            raise RuntimeError(f"{self!r}: {kind}_recv() with no {kind} under way: send one first.")
-        need = min(max(int(min_get), 1), len(sent))
-        deadline = None if timeout is None else time.monotonic() + timeout
-        take = self._pool.take_done if kind == "step" else self._pool.take_answer
+            mine = np.zeros_like(mine)
+            mine[rows] = True
+            min_get = max_get = rows.size
+        under_way = int(np.count_nonzero(mine))
+        if not under_way:
+            raise RuntimeError(f"{self!r}: {name}_recv() with no {name} under way: send one first.")
+        check_gather_args(min_get, max_get, timeout)
+        if min_get > under_way:
+            raise RuntimeError(f"Cannot await {min_get} {name} when only {under_way} are under way.")
+        limit = under_way if max_get is None else min(int(max_get), under_way)
+        start = time.monotonic()
+        deadline = None if timeout is None else start + timeout
+        arrived = self._arrived
+        self._watch(start)
         while True:
-            waiting = [i for i in sent if i not in arrived]
-            got = len(sent) - len(waiting)
-            draining = got >= need  # enough: take only what is ready now
-            if not waiting:
+            got = int(np.count_nonzero(arrived & mine))
+            if got >= limit:
                 break
-            if draining:
-                wait = 0.0
+            now = time.monotonic()
+            if got >= min_get:  # enough: what is ready now, or until the deadline
+                wait = 0.0 if deadline is None else max(0.0, deadline - now)
             else:
-                wait = None if deadline is None else max(0.0, deadline - time.monotonic())
-            try:
-                for i in self._pool.answered(waiting, wait):
-                    arrived.append(i)
-                    take(i)
-            except (EOFError, OSError, WorkerFailure) as err:
-                raise self._worker_failed(f"{kind}_recv", err) from getattr(err, "error", None) or err
-            if draining:
+                wait = None if deadline is None else max(0.0, deadline - now)
+                watch = self._next_watch(now)
+                if watch is not None and (wait is None or watch < wait):
+                    wait = watch
+            ready = self._pool.readable(wait)
+            if ready:
+                self._read_answers(ready)
+                continue
+            now = time.monotonic()
+            if got >= min_get and (deadline is None or now >= deadline):
                 break
-            got = sum(i in arrived for i in sent)
-            if got < need and deadline is not None and time.monotonic() >= deadline:
+            if deadline is not None and now >= deadline:
                 raise TimeoutError(
-                    f"{kind}_recv: {got} of the {need} sub-envs asked for finished within {timeout} s; "
+                    f"{name}_recv: {got} of the {min_get} sub-envs asked for finished within {timeout} s; "
                     "what arrived is kept for the next call."
                 )
-        mine = [i for i in arrived if i in sent]  # arrival order
-        taken = mine if max_get is None else mine[: int(max_get)]
-        for i in taken:
-            arrived.remove(i)
-            del self._busy[i]
-        return np.sort(np.asarray(taken, dtype=np.int64))
+            self._watch(now)
+        taken = np.flatnonzero(arrived & mine)
+        if taken.size > limit:  # the first to arrive
+            taken = np.sort(taken[np.argsort(self._arrival[taken], kind="stable")[:limit]])
+        self._state[taken] = IDLE
+        arrived[taken] = False
+        return taken
+
+    def _next_watch(self, now: float) -> float | None:
+        """Seconds until the watchdog's next threshold for a pending sub-env (None: none)."""
+        late = (self._state != IDLE) & ~self._arrived
+        if not late.any():
+            return None
+        times = []
+        if self.warn_after is not None:
+            times.append(self._sent_at[late & ~self._warned] + self.warn_after)
+        if self.fail_after is not None:
+            times.append(self._sent_at[late] + self.fail_after)
+        times = np.concatenate(times) if times else np.empty(0)
+        times = times[times > now]
+        return float(times.min()) - now if times.size else None
+
+    def _watch(self, now: float) -> None:
+        """Warns about sub-envs whose call has been under way ``warn_after`` s, and closes the env
+        with an error naming them past ``fail_after`` s (a stuck worker: never a hang)."""
+        late = (self._state != IDLE) & ~self._arrived
+        if not late.any():
+            return
+        waited = np.where(late, now - self._sent_at, 0.0)
+        if self.fail_after is not None and waited.max() >= self.fail_after:
+            stuck = np.flatnonzero(waited >= self.fail_after).tolist()
+            pids = [self._pool.processes[i].pid for i in stuck]
+            what = f"sub-env(s) {stuck} (pid {pids}) did not answer for {self.fail_after:g} s (fail_after)"
+            self._closed_why = f"{what}; their workers were stopped"
+            self.close()
+            raise RuntimeError(
+                f"CPUVectorEnv({self.spec.id}): {what}. Their workers are stuck (a sim that never returns, or a "
+                "stopped process); the env is closed and its workers stopped. Make a new env; raise fail_after "
+                "if its calls are this slow."
+            )
+        if self.warn_after is not None:
+            slow = late & ~self._warned & (waited >= self.warn_after)
+            if slow.any():
+                self._warned |= slow
+                warnings.warn(
+                    f"CPUVectorEnv({self.spec.id}): sub-env(s) {np.flatnonzero(slow).tolist()} have not answered "
+                    f"for {self.warn_after:g} s (warn_after); the env is closed with an error after "
+                    f"{self.fail_after} s (fail_after).",
+                    RuntimeWarning,
+                    stacklevel=4,
+                )
 
     def trace(self) -> dict:
         """The traced steps (``CPUVectorEnv(..., trace_steps=T)``: the last ``T``) and their summary:
@@ -593,7 +726,8 @@ class CPUVectorEnv:
         if self._closed:
             return
         self._closed = True
-        self._busy.clear()  # nothing is under way any more
+        self._state[:] = IDLE  # nothing is under way any more
+        self._arrived[:] = False
         if self._pool is not None:
             if self._closed_why:  # after a failure: the workers may be anywhere in a call
                 self._pool.stop()

@@ -14,6 +14,7 @@ received, laid out as :class:`~maniskill_torchrl.ManiSkillEnv` lays out a step, 
 from __future__ import annotations
 
 import functools
+import threading
 from typing import Any
 
 import numpy as np
@@ -21,7 +22,7 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs import AsyncEnvPool, EnvBase
 
-from maniskill_torchrl.engines.cpu_vector import CPUVectorEnv
+from maniskill_torchrl.engines.cpu_vector import CPUVectorEnv, check_gather_args
 from maniskill_torchrl.envs.engine_env import ManiSkillEnv, ManiSkillWrapper
 
 __all__ = ["ManiSkillAsyncEnvPool"]
@@ -40,6 +41,10 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
             last real step's observation; what :class:`~maniskill_torchrl.transforms.ActionRepeat`
             gives). Defaults to 1.
         info_keys (list of str, optional): as in :class:`~maniskill_torchrl.ManiSkillEnv`.
+        warn_after (float, optional): seconds an env may take over one call before a warning.
+            Defaults to 30. None: never.
+        fail_after (float, optional): seconds an env may take over one call before the pool is
+            closed with an error naming it (a stuck worker). Defaults to 300. None: never.
         **kwargs: ManiSkill's ``gym.make`` arguments (``obs_mode``, ``control_mode``,
             ``max_episode_steps``...), given to every env.
 
@@ -49,14 +54,23 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
     reset uses seed ``s + i`` and its later resets the draws of ``numpy.random.RandomState(s +
     i)``, in order, however the envs' steps interleave; each env therefore equals a lone
     ManiSkill env (``CPUGymWrapper``) reset with those seeds and given the same actions, bit for
-    bit. Without a seed the resets are ManiSkill's unseeded ones.
+    bit. Without ``set_seed`` (or after ``set_seed(None)``), ``s`` is drawn from the operating
+    system's entropy: every env plays its own episodes, as in gym's ``AsyncVectorEnv`` (the
+    workers fork from one process, and ManiSkill's unseeded resets would repeat one another).
 
     The sync calls (``reset``, ``step``, ``rollout``, a TorchRL ``Collector``) step every env
     together, as TorchRL's pools do; the asynchronous calls step some and return whichever are
     done: ``async_step_and_maybe_reset_recv`` returns the transitions and the roots of the next
-    steps, an env whose episode ended already reset there. A worker that fails makes the call
-    raise a ``RuntimeError`` naming its env, and closes the pool. CPU only
-    (``device="cpu"``); pictures come with ``obs_mode="rgb"`` (no ``from_pixels``).
+    steps, an env whose episode ended already reset there. Each env has one call under way at
+    most: ``async_step_recv`` returns the envs sent ``async_step_send`` only, and
+    ``async_step_and_maybe_reset_recv`` those sent ``async_step_and_maybe_reset_send``.
+    ``min_get``, ``max_get``, ``timeout`` and ``env_index`` follow TorchRL's pools: an ``int``
+    ``env_index`` gives that env's unbatched result, and the per-env calls may come from one
+    thread per env (TorchRL's ``AsyncBatchedCollector`` env loops). A worker that fails makes
+    the call raise a ``RuntimeError`` naming its env, and closes the pool; an env that does not
+    answer for ``warn_after`` seconds is warned about, and after ``fail_after`` seconds the call
+    raises and closes the pool (never a hang). CPU only (``device="cpu"``); pictures come with
+    ``obs_mode="rgb"`` (no ``from_pixels``).
 
     Examples:
         >>> import torch
@@ -80,6 +94,8 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         *,
         repeat: int = 1,
         info_keys: list[str] | None = None,
+        warn_after: float | None = 30.0,
+        fail_after: float | None = 300.0,
         **kwargs: Any,
     ) -> None:
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
@@ -92,7 +108,14 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         ):
             if key in kwargs:
                 raise TypeError(f"ManiSkillAsyncEnvPool does not take {key}=: {why}.")
-        self._maniskill = dict(env_name=env_name, repeat=repeat, info_keys=info_keys, kwargs=kwargs)
+        self._maniskill = dict(
+            env_name=env_name,
+            repeat=repeat,
+            info_keys=info_keys,
+            warn_after=warn_after,
+            fail_after=fail_after,
+            kwargs=kwargs,
+        )
         # The batched env whose specs and layout the pool has: in __dict__, not a submodule.
         self.__dict__["_inner"] = None
         single = functools.partial(ManiSkillEnv, env_name, batch_size=[], info_keys=info_keys, **kwargs)
@@ -112,13 +135,18 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         except BaseException:
             engine.close()
             raise
+        engine.warn_after, engine.fail_after = settings["warn_after"], settings["fail_after"]
         self._engine = engine
-        self._next_seed = np.full(self.num_envs, -1, dtype=np.int64)
-        self._rngs: list[np.random.RandomState | None] = [None] * self.num_envs
+        # One thread at a time in the engine's bookkeeping (TorchRL's env loops run one thread per env).
+        self._lock = threading.RLock()
+        self._next_seed = np.zeros(self.num_envs, dtype=np.int64)
+        self._rngs: list[np.random.RandomState] = []
+        self._set_seed(None)
         # What each env was sent to step, kept for its transition: one row per env, one indexed write
         # per send and one indexed read per receive (made on the first send).
         self._sent: TensorDictBase | None = None
-        self._stepping = {"step": set(), "step_reset": set()}
+        # Counts the plain steps and resets sent: a collector resumes its episodes only if none came between.
+        self._epoch = 0
         return self._inner.output_spec.clone(), self._inner.input_spec.clone()
 
     # The pool's specs are the batched env's own ([num_envs]); AsyncEnvPool would stack its
@@ -136,34 +164,40 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
     def _get_child_specs(self) -> list:
         return [{"input_spec": self.input_spec[i], "output_spec": self.output_spec[i]} for i in range(self.num_envs)]
 
-    # TorchRL's pools count the steps under way here (none once closed, or after a worker failed).
+    # TorchRL's pools count the calls under way here; the engine keeps one per env, and these
+    # are derived from it (none once closed, or after a worker failed).
+    def _count(self, kind: str) -> int:
+        if self._inner is None or self._engine.closed:
+            return 0
+        return self._engine.count_pending(kind)
+
     @property
     def _current_step(self) -> int:
-        return 0 if self._inner is None or self._engine.closed else len(self._stepping["step"])
+        return self._count("step")
 
     @property
     def _current_step_reset(self) -> int:
-        return 0 if self._inner is None or self._engine.closed else len(self._stepping["step_reset"])
+        return self._count("step_reset")
+
+    @property
+    def _current_reset(self) -> int:
+        return self._count("reset")
 
     # ------------------------------------------------------------------ seeds
     def _set_seed(self, seed: int | None) -> None:
-        if seed is None:
-            self._next_seed[:] = -1
-            self._rngs = [None] * self.num_envs
-            return
+        if seed is None:  # every env its own episodes, as gym's AsyncVectorEnv gives
+            seed = int(np.random.SeedSequence().entropy % 2**31)
         self._next_seed[:] = int(seed) + np.arange(self.num_envs)
         self._rngs = [np.random.RandomState((int(seed) + i) % 2**32) for i in range(self.num_envs)]
 
-    def _seeds(self, env_idx: np.ndarray) -> list[int | None]:
-        """The next reset seed of each env of ``env_idx`` (None: unseeded), not yet used up."""
-        return [None if s < 0 else int(s) for s in self._next_seed[env_idx]]
+    def _seeds(self, env_idx: np.ndarray) -> list[int]:
+        """The next reset seed of each env of ``env_idx``, not yet used up."""
+        return self._next_seed[env_idx].tolist()
 
     def _used_seeds(self, env_idx: np.ndarray) -> None:
         """The envs of ``env_idx`` have reset: their next reset takes their stream's next draw."""
         for i in env_idx.tolist():
-            rng = self._rngs[i]
-            if rng is not None:
-                self._next_seed[i] = rng.randint(2**31)
+            self._next_seed[i] = self._rngs[i].randint(2**31)
 
     # ------------------------------------------------------------------ asynchronous calls
     def _indexed(self, tensordict: TensorDictBase, env_index: Any) -> tuple[TensorDictBase, np.ndarray]:
@@ -185,7 +219,7 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
             )
         return tensordict, env_idx
 
-    def _send_steps(self, tensordict: TensorDictBase, env_index: Any, kind: str) -> None:
+    def _send_steps(self, tensordict: TensorDictBase, env_index: Any, autoreset: bool) -> None:
         tensordict, env_idx = self._indexed(tensordict, env_index)
         action = tensordict.get("action", None)
         if action is None:
@@ -193,51 +227,73 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
                 f"{self!r}: no 'action' entry in the tensordict sent to step ({sorted(tensordict.keys())}): set "
                 "td['action'] (the policy's output) first."
             )
-        autoreset = kind == "step_reset"
-        seeds = self._seeds(env_idx) if autoreset else None
-        self._engine.step_send(action, env_idx, autoreset=autoreset, reset_seeds=seeds)
-        if self._sent is None:
-            self._sent = tensordict[:1].expand(self.num_envs).clone()
-        self._sent[torch.from_numpy(env_idx)] = tensordict  # an entry new to the rows is made there
-        self._stepping[kind].update(env_idx.tolist())
+        with self._lock:
+            seeds = self._seeds(env_idx) if autoreset else None
+            self._engine.step_send(action, env_idx, autoreset=autoreset, reset_seeds=seeds)
+            if self._sent is None:
+                self._sent = tensordict[:1].expand(self.num_envs).clone()
+            self._sent[torch.from_numpy(env_idx)] = tensordict  # an entry new to the rows is made there
 
-    def _receive_steps(
-        self, kind: str, min_get: int | None, env_index: Any, max_get: int | None, timeout: float | None
-    ):
-        only = None if env_index is None else np.asarray(env_index, dtype=np.int64).reshape(-1)
-        pending = self._stepping[kind]
-        if only is None:
+    def _wait_for(self, env_index: int) -> None:
+        """Waits, without holding the pool's lock, until env ``env_index`` has answered (the
+        per-env calls of TorchRL's env loops, one thread per env)."""
+        engine = self._engine
+        while True:
+            with self._lock:
+                if engine.answered(env_index):
+                    return
+            engine.wait_readable(env_index, 0.05)
+
+    def _receive(
+        self, autoreset: bool, min_get: int | None, env_index: Any, max_get: int | None, timeout: float | None
+    ) -> tuple[np.ndarray, tuple, tuple | None]:
+        engine = self._engine
+        if env_index is None:
+            kind = "step_reset" if autoreset else "step"
             min_get = self.min_get if min_get is None else min_get
-            if min_get > len(pending):
-                raise RuntimeError(f"Cannot await {min_get} steps when only {len(pending)} are being stepped.")
-        rows, step, reset = self._engine.step_recv(
-            1 if only is not None else min_get, max_get=max_get, timeout=timeout, env_idx=only
-        )
-        pending.difference_update(rows.tolist())
-        batch = torch.Size([len(rows)])
+            check_gather_args(min_get, max_get, timeout)
+            with self._lock:
+                pending = self._count(kind)
+                if min_get > pending:
+                    raise RuntimeError(f"Cannot await {min_get} {kind} when only {pending} are being stepped.")
+                return engine.step_recv(min_get, max_get=max_get, timeout=timeout, autoreset=autoreset)
+        only = np.asarray(torch.as_tensor(env_index, device="cpu").reshape(-1), dtype=np.int64)
+        if only.size == 1:
+            self._wait_for(int(only[0]))
+        with self._lock:
+            return engine.step_recv(env_idx=only, autoreset=autoreset)
+
+    def _transitions(self, rows: np.ndarray, step: tuple) -> tuple[TensorDictBase, torch.Tensor]:
         index = torch.from_numpy(rows)
         transitions = self._sent[index]
         transitions.set(self._env_idx_key, index)
-        transitions.set("next", self._inner._step_tensordict(*step, batch))
-        return rows, transitions, reset, index
+        transitions.set("next", self._inner._step_tensordict(*step, torch.Size([len(rows)])))
+        return transitions, index
+
+    @staticmethod
+    def _one(out: TensorDictBase, env_index: Any) -> TensorDictBase:
+        """An ``int`` env index gets its env's unbatched result, as TorchRL's pools give it."""
+        return out[0] if isinstance(env_index, (int, np.integer)) else out
 
     def async_step_send(self, tensordict: TensorDictBase, env_index: int | list[int] | None = None) -> None:
-        self._send_steps(tensordict, env_index, "step")
+        self._send_steps(tensordict, env_index, autoreset=False)
+        self._epoch += 1
 
     def async_step_recv(
         self,
         min_get: int | None = None,
-        env_index: int | None = None,
+        env_index: int | list[int] | None = None,
         *,
         max_get: int | None = None,
         timeout: float | None = None,
     ) -> TensorDictBase:
-        return self._receive_steps("step", min_get, env_index, max_get, timeout)[1]
+        rows, step, _ = self._receive(False, min_get, env_index, max_get, timeout)
+        return self._one(self._transitions(rows, step)[0], env_index)
 
     def async_step_and_maybe_reset_send(
         self, tensordict: TensorDictBase, env_index: int | list[int] | None = None
     ) -> None:
-        self._send_steps(tensordict, env_index, "step_reset")
+        self._send_steps(tensordict, env_index, autoreset=True)
 
     def async_step_and_maybe_reset_recv(
         self,
@@ -247,17 +303,17 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         max_get: int | None = None,
         timeout: float | None = None,
     ) -> tuple[TensorDictBase, TensorDictBase]:
-        rows, transitions, (done, obs, info), index = self._receive_steps(
-            "step_reset", min_get, env_index, max_get, timeout
-        )
+        rows, step, (done, obs, info) = self._receive(True, min_get, env_index, max_get, timeout)
+        transitions, index = self._transitions(rows, step)
         roots = self._step_mdp(transitions)
         roots.set(self._env_idx_key, index)
         if done.any():
-            self._used_seeds(rows[done.numpy()])
+            with self._lock:
+                self._used_seeds(rows[done.numpy()])
             restarted = self._restarts(obs, info, int(done.sum()))
             roots = roots.clone()  # step_mdp's entries are the transitions' "next" ones
             roots[done] = restarted
-        return transitions, roots
+        return self._one(transitions, env_index), self._one(roots, env_index)
 
     def _restarts(self, obs: Any, info: Any, count: int) -> TensorDictBase:
         """The roots of ``count`` episodes' starts: the reset's entries, every done flag False."""
@@ -273,24 +329,37 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
     ) -> None:
         tensordict, env_idx = self._maybe_make_tensordict(tensordict, env_index, True)
         env_idx = np.asarray(env_idx, dtype=np.int64).reshape(-1)
-        seeds = self._seeds(env_idx)
-        self._engine.reset_send(env_idx, seeds)
-        self._used_seeds(env_idx)
+        with self._lock:
+            self._engine.reset_send(env_idx, self._seeds(env_idx))
+            self._used_seeds(env_idx)
+            self._epoch += 1
 
     def async_reset_recv(
         self,
         min_get: int | None = None,
-        env_index: int | None = None,
+        env_index: int | list[int] | None = None,
         *,
         max_get: int | None = None,
         timeout: float | None = None,
     ) -> TensorDictBase:
-        only = None if env_index is None else np.asarray(env_index, dtype=np.int64).reshape(-1)
-        min_get = self.min_get if min_get is None else min_get
-        rows, obs, info = self._engine.reset_recv(min_get, max_get=max_get, timeout=timeout, env_idx=only)
+        engine = self._engine
+        if env_index is None:
+            min_get = self.min_get if min_get is None else min_get
+            check_gather_args(min_get, max_get, timeout)
+            with self._lock:
+                pending = self._count("reset")
+                if min_get > pending:
+                    raise RuntimeError(f"Cannot await {min_get} reset when only {pending} are being reset.")
+                rows, obs, info = engine.reset_recv(min_get, max_get=max_get, timeout=timeout)
+        else:
+            only = np.asarray(torch.as_tensor(env_index, device="cpu").reshape(-1), dtype=np.int64)
+            if only.size == 1:
+                self._wait_for(int(only[0]))
+            with self._lock:
+                rows, obs, info = engine.reset_recv(env_idx=only)
         out = self._restarts(obs, info, len(rows))
         out.set(self._env_idx_key, torch.from_numpy(rows))
-        return out
+        return self._one(out, env_index)
 
     # ------------------------------------------------------------------ sync calls
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDictBase:
