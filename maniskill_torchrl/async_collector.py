@@ -19,6 +19,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torch import nn
 from torchrl.collectors import BaseCollector
+from torchrl.data import Composite
 from torchrl.envs import AsyncEnvPool
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import RandomPolicy
@@ -49,12 +50,13 @@ class AsyncPoolCollector(BaseCollector):
 
     Each yielded batch is ``[frames_per_batch]`` transitions (the root, ``"action"``,
     ``"next"``, ``"env_index"``, ``("collector", "traj_ids")`` and ``"step_count"`` /
-    ``("next", "step_count")`` as TorchRL's ``StepCounter`` writes them) in the order they
-    finished, not ``[N, T]``: the envs' steps are out of lockstep. The transitions of one env
-    keep their order; a trajectory is one ``traj_ids`` value (TorchRL's collectors' key:
-    ``split_trajs`` and ``SliceSampler(traj_key=("collector", "traj_ids"))`` take it), and
-    ends where ``("next", "done")`` is True; the env's next transition starts its next
-    episode (the pool resets it at once).
+    ``("next", "step_count")`` as TorchRL's ``StepCounter`` writes them), not ``[N, T]``: the
+    envs' steps are out of lockstep, and a batch holds the transitions that finished first.
+    Within it each trajectory's transitions lie side by side, in order, sorted by their
+    ``("collector", "traj_ids")`` (TorchRL's collectors' key: ``split_trajectories`` and
+    ``SliceSampler(traj_key=("collector", "traj_ids"))`` read it). A trajectory ends where
+    ``("next", "done")`` is True; the env's next transition starts its next episode (the pool
+    resets it at once) with a new id.
 
     Episodes carry on from one ``iter()`` to the next: the steps under way when an iteration
     stops are received and kept for the next batch, and nothing is dropped. If the pool was
@@ -107,7 +109,11 @@ class AsyncPoolCollector(BaseCollector):
         if policy is None or isinstance(policy, RandomPolicy):
             spec = env.full_action_spec if policy is None or policy.action_spec is None else policy.action_spec
             one = env.full_action_spec_unbatched
-            self._actions = [(key, _unbatched(spec[key], one[key])) for key in env.action_keys]
+            if isinstance(spec, Composite):
+                self._actions = [(key, _unbatched(spec[key], one[key])) for key in env.action_keys]
+            else:  # a RandomPolicy of one leaf spec writes its action_key
+                key = policy.action_key
+                self._actions = [(key, _unbatched(spec, one[key]))]
             policy = None
         self.policy = policy
         n = env.num_envs
@@ -209,7 +215,10 @@ class AsyncPoolCollector(BaseCollector):
                 batches = []
                 while held >= self.frames_per_batch:
                     batch = torch.cat(chunks) if len(chunks) > 1 else chunks[0]
-                    batches.append(batch[: self.frames_per_batch])
+                    out = batch[: self.frames_per_batch]
+                    # Each trajectory's transitions side by side, in order (what split_trajectories
+                    # and SliceSampler read); the envs' steps interleave in the order they finished.
+                    batches.append(out[torch.argsort(out.get(_TRAJ_IDS), stable=True)])
                     rest = batch[self.frames_per_batch :]
                     chunks, held = ([rest] if rest.shape[0] else []), rest.shape[0]
                 stats["cycles"] += 1

@@ -167,6 +167,9 @@ class WorkerPool:
             pipe.close()
         for process in self.processes:
             process.join(5)
+            if process.is_alive():  # stopped, or deaf to SIGTERM: SIGKILL ends it whatever its state
+                process.kill()
+                process.join(5)
 
     def close(self, timeout: float = 5.0) -> None:
         """Asks every worker to close its env, waits for them, and stops what is left."""

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import torch
 from tensordict import TensorDictBase
+from torchrl.data import Unbounded
 from torchrl.envs import AsyncEnvPool, EnvBase
 
 from maniskill_torchrl.engines.cpu_vector import CPUVectorEnv, check_gather_args
@@ -120,6 +121,11 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         self.__dict__["_inner"] = None
         single = functools.partial(ManiSkillEnv, env_name, batch_size=[], info_keys=info_keys, **kwargs)
         super().__init__([single] * int(num_envs), backend="threading", stack="dense")
+        # The env indices are an int64 tensor here (TorchRL's pools stack python ints): declared so,
+        # check_env_specs compares them as the other entries.
+        self.__dict__["_input_spec"]["full_state_spec"].set(
+            self._env_idx_key, Unbounded(shape=(self.num_envs,), dtype=torch.int64)
+        )
 
     # ------------------------------------------------------------------ set-up
     def _setup(self) -> tuple:
@@ -138,7 +144,7 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         engine.warn_after, engine.fail_after = settings["warn_after"], settings["fail_after"]
         self._engine = engine
         # One thread at a time in the engine's bookkeeping (TorchRL's env loops run one thread per env).
-        self._lock = threading.RLock()
+        self._pool_lock = threading.RLock()
         self._next_seed = np.zeros(self.num_envs, dtype=np.int64)
         self._rngs: list[np.random.RandomState] = []
         self._set_seed(None)
@@ -163,6 +169,16 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
 
     def _get_child_specs(self) -> list:
         return [{"input_spec": self.input_spec[i], "output_spec": self.output_spec[i]} for i in range(self.num_envs)]
+
+    @property
+    def is_closed(self) -> bool:
+        """Whether the pool is closed (by ``close()``, or after a worker failed or got stuck)."""
+        engine = self.__dict__.get("_engine")
+        return self.__dict__.get("_inner") is None or engine is None or engine.closed
+
+    @is_closed.setter
+    def is_closed(self, value: bool) -> None:  # EnvBase sets it; here it is the engine's state
+        pass
 
     # TorchRL's pools count the calls under way here; the engine keeps one per env, and these
     # are derived from it (none once closed, or after a worker failed).
@@ -227,7 +243,7 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
                 f"{self!r}: no 'action' entry in the tensordict sent to step ({sorted(tensordict.keys())}): set "
                 "td['action'] (the policy's output) first."
             )
-        with self._lock:
+        with self._pool_lock:
             seeds = self._seeds(env_idx) if autoreset else None
             self._engine.step_send(action, env_idx, autoreset=autoreset, reset_seeds=seeds)
             if self._sent is None:
@@ -239,7 +255,7 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         per-env calls of TorchRL's env loops, one thread per env)."""
         engine = self._engine
         while True:
-            with self._lock:
+            with self._pool_lock:
                 if engine.answered(env_index):
                     return
             engine.wait_readable(env_index, 0.05)
@@ -252,7 +268,7 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
             kind = "step_reset" if autoreset else "step"
             min_get = self.min_get if min_get is None else min_get
             check_gather_args(min_get, max_get, timeout)
-            with self._lock:
+            with self._pool_lock:
                 pending = self._count(kind)
                 if min_get > pending:
                     raise RuntimeError(f"Cannot await {min_get} {kind} when only {pending} are being stepped.")
@@ -260,7 +276,7 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         only = np.asarray(torch.as_tensor(env_index, device="cpu").reshape(-1), dtype=np.int64)
         if only.size == 1:
             self._wait_for(int(only[0]))
-        with self._lock:
+        with self._pool_lock:
             return engine.step_recv(env_idx=only, autoreset=autoreset)
 
     def _transitions(self, rows: np.ndarray, step: tuple) -> tuple[TensorDictBase, torch.Tensor]:
@@ -308,7 +324,7 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         roots = self._step_mdp(transitions)
         roots.set(self._env_idx_key, index)
         if done.any():
-            with self._lock:
+            with self._pool_lock:
                 self._used_seeds(rows[done.numpy()])
             restarted = self._restarts(obs, info, int(done.sum()))
             roots = roots.clone()  # step_mdp's entries are the transitions' "next" ones
@@ -329,7 +345,7 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
     ) -> None:
         tensordict, env_idx = self._maybe_make_tensordict(tensordict, env_index, True)
         env_idx = np.asarray(env_idx, dtype=np.int64).reshape(-1)
-        with self._lock:
+        with self._pool_lock:
             self._engine.reset_send(env_idx, self._seeds(env_idx))
             self._used_seeds(env_idx)
             self._epoch += 1
@@ -346,7 +362,7 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         if env_index is None:
             min_get = self.min_get if min_get is None else min_get
             check_gather_args(min_get, max_get, timeout)
-            with self._lock:
+            with self._pool_lock:
                 pending = self._count("reset")
                 if min_get > pending:
                     raise RuntimeError(f"Cannot await {min_get} reset when only {pending} are being reset.")
@@ -355,7 +371,7 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
             only = np.asarray(torch.as_tensor(env_index, device="cpu").reshape(-1), dtype=np.int64)
             if only.size == 1:
                 self._wait_for(int(only[0]))
-            with self._lock:
+            with self._pool_lock:
                 rows, obs, info = engine.reset_recv(env_idx=only)
         out = self._restarts(obs, info, len(rows))
         out.set(self._env_idx_key, torch.from_numpy(rows))
