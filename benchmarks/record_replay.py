@@ -1,7 +1,9 @@
 """Records the real task that ``benchmarks/replay_task.py`` replays: PickCube-v1, ``obs_mode="state"``,
 CPU sim, ``max_episode_steps=50``, episodes reset with seeds 0..``--episodes``-1 and stepped 50 times
 with seeded uniform random actions (``torch.Generator().manual_seed(seed)``, float32 in the action
-space's bounds), every call under :func:`torch.inference_mode` (as the library's workers step).
+space's bounds), each held for 2 steps as an agent at action repeat 2 holds it (so the replay is
+the real episode at repeat 1 and at repeat 2 alike), every call under :func:`torch.inference_mode`
+(as the library's workers step).
 
 It saves each step's outputs (observation, reward, the task's infos) once, and the wall time of
 each ``BaseEnv.step`` and ``BaseEnv.reset`` (the task itself, without gym's wrappers) over
@@ -30,17 +32,20 @@ from benchmarks.machine import machine_line, wait_for_quiet
 ENV_ID = "PickCube-v1"
 OUT = Path(__file__).resolve().parent / "replay" / "pickcube_state.npz"
 EPISODE = 50
+HOLD = 2  # the action repeat benchmarked: each drawn action is held for 2 sim steps
 MAKE_KWARGS = {"obs_mode": "state", "max_episode_steps": EPISODE, "sim_backend": "physx_cpu", "render_backend": "none"}
 
 
-def episode_actions(space, seed: int, steps: int = EPISODE) -> np.ndarray:
-    """The ``[steps, *action]`` float32 actions of the episode seeded ``seed``."""
+def episode_actions(space, seed: int, steps: int = EPISODE, hold: int = HOLD) -> np.ndarray:
+    """The ``[steps, *action]`` float32 actions of the episode seeded ``seed``, each held for ``hold``
+    steps (an agent at action repeat ``hold``)."""
     import torch
 
     g = torch.Generator().manual_seed(seed)
     low = torch.as_tensor(space.low, dtype=torch.float32)
     high = torch.as_tensor(space.high, dtype=torch.float32)
-    return (low + (high - low) * torch.rand((steps, *space.shape), generator=g)).numpy()
+    drawn = low + (high - low) * torch.rand((-(-steps // hold), *space.shape), generator=g)
+    return drawn.repeat_interleave(hold, dim=0)[:steps].numpy()
 
 
 class _Timed:
@@ -135,7 +140,9 @@ def record(episodes: int, passes: int) -> dict:
         "info_keys": info_keys,
         "episodes": episodes,
         "passes": passes,
-        "actions": "torch.Generator().manual_seed(seed): low + (high - low) * torch.rand((50, *shape)), float32",
+        "actions": "torch.Generator().manual_seed(seed): low + (high - low) * torch.rand((25, *shape)), float32, "
+        "each held for 2 steps",
+        "hold": HOLD,
         "timing": "wall time of each BaseEnv.step / BaseEnv.reset under torch.inference_mode, one torch thread",
     }
     env.close()
