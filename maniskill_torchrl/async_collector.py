@@ -15,14 +15,17 @@ from collections import OrderedDict
 from collections.abc import Callable, Iterator
 from typing import Any
 
+import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torch import nn
 from torchrl.collectors import BaseCollector
-from torchrl.data import Composite
+from torchrl.data import Bounded, Composite
 from torchrl.envs import AsyncEnvPool
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import RandomPolicy
+
+from maniskill_torchrl.envs.async_pool import ManiSkillAsyncEnvPool
 
 __all__ = ["AsyncPoolCollector"]
 
@@ -110,17 +113,19 @@ class AsyncPoolCollector(BaseCollector):
             spec = env.full_action_spec if policy is None or policy.action_spec is None else policy.action_spec
             one = env.full_action_spec_unbatched
             if isinstance(spec, Composite):
-                self._actions = [(key, _unbatched(spec[key], one[key])) for key in env.action_keys]
+                leaves = [(key, _unbatched(spec[key], one[key])) for key in env.action_keys]
             else:  # a RandomPolicy of one leaf spec writes its action_key
                 key = policy.action_key
-                self._actions = [(key, _unbatched(spec, one[key]))]
+                leaves = [(key, _unbatched(spec, one[key]))]
+            self._actions = [(key, _uniform(leaf)) for key, leaf in leaves]
             policy = None
         self.policy = policy
         n = env.num_envs
         # Per env: its trajectory id and the steps of its episode so far; the next new id.
-        self._traj_ids = torch.arange(n)
-        self._next_traj = n
-        self._step_count = torch.zeros(n, 1, dtype=torch.int64)
+        self._traj_ids = np.zeros(n, dtype=np.int64)  # set when the episodes start
+        self._next_traj = 0
+        self._step_count = np.zeros((n, 1), dtype=np.int64)
+        self._marks: list[tuple[np.ndarray, np.ndarray]] = []  # per chunk received, not yet set
         # Between iterations: transitions received and not yet yielded, roots not yet acted on,
         # and the pool's count of foreign steps and resets when the episodes were last under way.
         self._kept: list[TensorDictBase] = []
@@ -136,23 +141,48 @@ class AsyncPoolCollector(BaseCollector):
             with torch.no_grad(), set_exploration_type(self.exploration_type):
                 roots = self.policy(roots)
         else:
-            for key, spec in self._actions:
-                roots.set(key, spec.rand(roots.shape))
-        self.env.async_step_and_maybe_reset_send(roots, env_index=roots["env_index"].tolist())
+            for key, draw in self._actions:
+                roots.set(key, draw(roots.shape))
+        index = roots.get("env_index")
+        if not isinstance(self.env, ManiSkillAsyncEnvPool):  # TorchRL's pools take a list
+            index = index.tolist()
+        self.env.async_step_and_maybe_reset_send(roots, env_index=index)
 
-    def _mark(self, transitions: TensorDictBase) -> None:
-        """Trajectory ids and step counts, then new ids for the envs whose episode ended."""
-        index = transitions["env_index"]
+    def _mark(self, transitions: TensorDictBase) -> TensorDictBase:
+        """Trajectory ids and step counts of ``transitions``, then new ids for the envs whose
+        episode ended; the entries are set on the whole batch at once (:meth:`_with_marks`)."""
+        index = transitions.get("env_index").numpy()
         counts = self._step_count[index]
-        transitions.set(_TRAJ_IDS, self._traj_ids[index])
-        transitions.set("step_count", counts)
-        transitions.set(("next", "step_count"), counts + 1)
-        done = transitions.get(("next", "done")).reshape(-1)
-        self._step_count[index] = torch.where(done.unsqueeze(-1), 0, counts + 1)
+        self._marks.append((self._traj_ids[index], counts))
+        done = transitions.get(("next", "done")).numpy().reshape(-1)
+        self._step_count[index] = np.where(done[:, None], 0, counts + 1)
         if done.any():
             ended = index[done]
-            self._traj_ids[ended] = torch.arange(self._next_traj, self._next_traj + len(ended))
+            self._traj_ids[ended] = np.arange(self._next_traj, self._next_traj + len(ended))
             self._next_traj += len(ended)
+        return transitions
+
+    def _split(self, chunks: list[TensorDictBase]) -> tuple[list[TensorDictBase], int, TensorDictBase]:
+        """A batch of the first ``frames_per_batch`` transitions of ``chunks``, with their ids and step
+        counts, each trajectory's transitions side by side and in order (what ``split_trajectories``
+        and ``SliceSampler`` read); and the chunks and count left."""
+        frames = self.frames_per_batch
+        joined = torch.cat(chunks) if len(chunks) > 1 else chunks[0]
+        ids, counts = self._joined_marks(len(chunks))
+        rest = joined[frames:]
+        if rest.shape[0]:  # its marks go back, set with its own batch
+            self._marks.insert(0, (ids[frames:], counts[frames:]))
+        out = joined[:frames]
+        out.set(_TRAJ_IDS, torch.from_numpy(ids[:frames]))
+        out.set("step_count", torch.from_numpy(counts[:frames]))
+        out.set(("next", "step_count"), torch.from_numpy(counts[:frames] + 1))
+        out = out[torch.argsort(out.get(_TRAJ_IDS), stable=True)]
+        return ([rest] if rest.shape[0] else []), rest.shape[0], out
+
+    def _joined_marks(self, count: int) -> tuple[np.ndarray, np.ndarray]:
+        """The marks of the first ``count`` chunks, as one."""
+        marks, self._marks = self._marks[:count], self._marks[count:]
+        return np.concatenate([m[0] for m in marks]), np.concatenate([m[1] for m in marks])
 
     def _start(self) -> None:
         """Every env's episodes start (or go on from the last iteration, when nothing came between)."""
@@ -164,7 +194,10 @@ class AsyncPoolCollector(BaseCollector):
             everyone = list(range(pool.num_envs))
             pool.async_reset_send(env_index=everyone)
             self._held = [pool.async_reset_recv(min_get=pool.num_envs)]
-            self._step_count.zero_()
+            self._step_count[:] = 0
+            n = pool.num_envs
+            self._traj_ids[:] = np.arange(self._next_traj, self._next_traj + n)
+            self._next_traj += n
             self._epoch = getattr(pool, "_epoch", None)
             self._running = True
         if self._held:
@@ -181,6 +214,8 @@ class AsyncPoolCollector(BaseCollector):
         if not self._kept:
             return
         kept = torch.cat(self._kept) if len(self._kept) > 1 else self._kept[0]
+        merged = self._joined_marks(len(self._kept))
+        self._marks.insert(0, merged)
         index = kept["env_index"]
         last = torch.zeros(len(kept), dtype=torch.bool)
         for i in index.unique().tolist():
@@ -214,13 +249,8 @@ class AsyncPoolCollector(BaseCollector):
                     held += transitions.shape[0]
                 batches = []
                 while held >= self.frames_per_batch:
-                    batch = torch.cat(chunks) if len(chunks) > 1 else chunks[0]
-                    out = batch[: self.frames_per_batch]
-                    # Each trajectory's transitions side by side, in order (what split_trajectories
-                    # and SliceSampler read); the envs' steps interleave in the order they finished.
-                    batches.append(out[torch.argsort(out.get(_TRAJ_IDS), stable=True)])
-                    rest = batch[self.frames_per_batch :]
-                    chunks, held = ([rest] if rest.shape[0] else []), rest.shape[0]
+                    chunks, held, out = self._split(chunks)
+                    batches.append(out)
                 stats["cycles"] += 1
                 stats["wait"] += t1 - t0
                 stats["policy"] += t2 - t1
@@ -265,7 +295,7 @@ class AsyncPoolCollector(BaseCollector):
             "other": (s["total"] - s["wait"] - s["policy"]) / n,
         }
         if reset:
-            self._stats = {"cycles": 0, "wait": 0.0, "policy": 0.0, "total": 0.0}
+            s.update(cycles=0, wait=0.0, policy=0.0, total=0.0)
         return out
 
     # ------------------------------------------------------------------ TorchRL's collector API
@@ -313,6 +343,16 @@ class AsyncPoolCollector(BaseCollector):
 
     def __getstate__(self) -> Any:
         raise TypeError("AsyncPoolCollector drives live worker processes and cannot be pickled.")
+
+
+def _uniform(spec: Any) -> Callable[[torch.Size], torch.Tensor]:
+    """Draws of ``spec.rand(shape)``: for a continuous box, uniform in its bounds with the bounds kept
+    once (``Bounded.rand`` re-derives them on every call, on the collector's critical path)."""
+    if isinstance(spec, Bounded) and spec.dtype.is_floating_point:
+        low, span = spec.space.low, spec.space.high - spec.space.low
+        if torch.isfinite(span).all():
+            return lambda shape: torch.rand(*shape, *spec.shape, dtype=spec.dtype).mul_(span).add_(low)
+    return spec.rand
 
 
 def _unbatched(spec: Any, one: Any) -> Any:

@@ -64,6 +64,8 @@ __all__ = ["CPUVectorEnv", "check_gather_args", "in_process_default"]
 IDLE, STEPPING, STEPPING_RESET, RESETTING = 0, 1, 2, 3
 _KINDS = {"step": STEPPING, "step_reset": STEPPING_RESET, "reset": RESETTING}
 _KIND_NAMES = {v: k for k, v in _KINDS.items()}
+# Seconds between two looks of the watchdog at the sub-envs that have not answered (warn_after, fail_after).
+_WATCH_EVERY = 0.2
 
 
 def check_gather_args(min_get: int, max_get: int | None, timeout: float | None) -> None:
@@ -76,6 +78,7 @@ def check_gather_args(min_get: int, max_get: int | None, timeout: float | None) 
         )
     if timeout is not None and timeout < 0:
         raise ValueError(f"timeout must be non-negative, got {timeout}.")
+
 
 # What a worker imports before it makes its env (torch, gymnasium, ManiSkill's tasks): most of its
 # start. The forkserver imports them once; the workers it forks start without (RESULTS.md, "Worker start").
@@ -217,6 +220,7 @@ class CPUVectorEnv:
         self._arrivals = 0
         self._sent_at = np.zeros(int(num_envs))
         self._warned = np.zeros(int(num_envs), np.bool_)
+        self._watch_at = 0.0
         #: split phase: seconds a sub-env may take over one call before a warning, then before an
         #: error that closes the env (a stuck worker); None: never.
         self.warn_after: float | None = 30.0
@@ -387,7 +391,7 @@ class CPUVectorEnv:
         reset = None
         if kind == STEPPING_RESET:
             done = (step[TERMINATED] | step[TRUNCATED]).numpy()
-            again = block.read_rows(rows[done] + self.num_envs)
+            again = block.read_rows(rows[done] + self.num_envs) if done.any() else {OBS: None, INFO: None}
             reset = (torch.from_numpy(done), again[OBS], again[INFO])
         return rows, (step[OBS], step[REWARD], step[TERMINATED], step[TRUNCATED], step[INFO]), reset
 
@@ -524,7 +528,9 @@ class CPUVectorEnv:
         start = time.monotonic()
         deadline = None if timeout is None else start + timeout
         arrived = self._arrived
-        self._watch(start)
+        if start >= self._watch_at:  # a few times a second: the envs that keep others waiting
+            self._watch(start)
+            self._watch_at = start + _WATCH_EVERY
         while True:
             got = int(np.count_nonzero(arrived & mine))
             if got >= limit:
@@ -534,9 +540,8 @@ class CPUVectorEnv:
                 wait = 0.0 if deadline is None else max(0.0, deadline - now)
             else:
                 wait = None if deadline is None else max(0.0, deadline - now)
-                watch = self._next_watch(now)
-                if watch is not None and (wait is None or watch < wait):
-                    wait = watch
+                if self.warn_after is not None or self.fail_after is not None:
+                    wait = _WATCH_EVERY if wait is None else min(wait, _WATCH_EVERY)
             ready = self._pool.readable(wait)
             if ready:
                 self._read_answers(ready)
@@ -550,26 +555,13 @@ class CPUVectorEnv:
                     "what arrived is kept for the next call."
                 )
             self._watch(now)
+            self._watch_at = now + _WATCH_EVERY
         taken = np.flatnonzero(arrived & mine)
         if taken.size > limit:  # the first to arrive
             taken = np.sort(taken[np.argsort(self._arrival[taken], kind="stable")[:limit]])
         self._state[taken] = IDLE
         arrived[taken] = False
         return taken
-
-    def _next_watch(self, now: float) -> float | None:
-        """Seconds until the watchdog's next threshold for a pending sub-env (None: none)."""
-        late = (self._state != IDLE) & ~self._arrived
-        if not late.any():
-            return None
-        times = []
-        if self.warn_after is not None:
-            times.append(self._sent_at[late & ~self._warned] + self.warn_after)
-        if self.fail_after is not None:
-            times.append(self._sent_at[late] + self.fail_after)
-        times = np.concatenate(times) if times else np.empty(0)
-        times = times[times > now]
-        return float(times.min()) - now if times.size else None
 
     def _watch(self, now: float) -> None:
         """Warns about sub-envs whose call has been under way ``warn_after`` s, and closes the env

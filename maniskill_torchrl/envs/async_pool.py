@@ -23,6 +23,7 @@ from tensordict import TensorDictBase
 from torchrl.data import Unbounded
 from torchrl.envs import AsyncEnvPool, EnvBase
 
+from maniskill_torchrl._internal.rows import RowStore
 from maniskill_torchrl.engines.cpu_vector import CPUVectorEnv, check_gather_args
 from maniskill_torchrl.envs.engine_env import ManiSkillEnv, ManiSkillWrapper
 
@@ -149,8 +150,9 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         self._rngs: list[np.random.RandomState] = []
         self._set_seed(None)
         # What each env was sent to step, kept for its transition: one row per env, one indexed write
-        # per send and one indexed read per receive (made on the first send).
-        self._sent: TensorDictBase | None = None
+        # per send and one indexed read per receive (made on the first send; a TensorDict where the
+        # rows hold something numpy cannot, or after the entries sent changed).
+        self._sent: RowStore | TensorDictBase | None = None
         # Counts the plain steps and resets sent: a collector resumes its episodes only if none came between.
         self._epoch = 0
         return self._inner.output_spec.clone(), self._inner.input_spec.clone()
@@ -228,7 +230,10 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         if isinstance(env_index, int) or (isinstance(env_index, torch.Tensor) and env_index.ndim == 0):
             if tensordict.ndim == 0:
                 tensordict = tensordict.unsqueeze(0)
-        env_idx = np.asarray(torch.as_tensor(env_index, device="cpu").reshape(-1), dtype=np.int64)
+        if isinstance(env_index, torch.Tensor) and env_index.ndim == 1 and env_index.device.type == "cpu":
+            env_idx = env_index.numpy().astype(np.int64, copy=False)
+        else:
+            env_idx = np.asarray(torch.as_tensor(env_index, device="cpu").reshape(-1), dtype=np.int64)
         if tensordict.shape[:1] != (len(env_idx),):
             raise ValueError(
                 f"{self!r}: {len(env_idx)} env indices for a tensordict of batch {tuple(tensordict.shape)}."
@@ -246,9 +251,19 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         with self._pool_lock:
             seeds = self._seeds(env_idx) if autoreset else None
             self._engine.step_send(action, env_idx, autoreset=autoreset, reset_seeds=seeds)
-            if self._sent is None:
-                self._sent = tensordict[:1].expand(self.num_envs).clone()
-            self._sent[torch.from_numpy(env_idx)] = tensordict  # an entry new to the rows is made there
+            sent = self._sent
+            if sent is None:
+                if RowStore.supports(tensordict):
+                    self._sent = sent = RowStore(tensordict, self.num_envs)
+                else:
+                    self._sent = sent = tensordict[:1].expand(self.num_envs).clone()
+            elif isinstance(sent, RowStore) and not sent.fits(tensordict):
+                # Other entries than before (a new policy): the general, slower rows from now on.
+                self._sent = sent = sent.read(np.arange(self.num_envs))
+            if isinstance(sent, RowStore):
+                sent.write(env_idx, tensordict)
+            else:
+                sent[torch.from_numpy(env_idx)] = tensordict  # an entry new to the rows is made there
 
     def _wait_for(self, env_index: int) -> None:
         """Waits, without holding the pool's lock, until env ``env_index`` has answered (the
@@ -281,7 +296,8 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
 
     def _transitions(self, rows: np.ndarray, step: tuple) -> tuple[TensorDictBase, torch.Tensor]:
         index = torch.from_numpy(rows)
-        transitions = self._sent[index]
+        sent = self._sent
+        transitions = sent.read(rows) if isinstance(sent, RowStore) else sent[index]
         transitions.set(self._env_idx_key, index)
         transitions.set("next", self._inner._step_tensordict(*step, torch.Size([len(rows)])))
         return transitions, index
@@ -321,7 +337,10 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
     ) -> tuple[TensorDictBase, TensorDictBase]:
         rows, step, (done, obs, info) = self._receive(True, min_get, env_index, max_get, timeout)
         transitions, index = self._transitions(rows, step)
-        roots = self._step_mdp(transitions)
+        # TorchRL's step_mdp, for this pool's entries: "next" but the reward, the action and env index kept.
+        roots = transitions.get("next").exclude(*self.reward_keys)
+        for key in self.action_keys:
+            roots.set(key, transitions.get(key))
         roots.set(self._env_idx_key, index)
         if done.any():
             with self._pool_lock:

@@ -14,6 +14,7 @@ import signal
 import threading
 import time
 
+import numpy as np
 import pytest
 import torch
 from torchrl.collectors.utils import split_trajectories
@@ -181,16 +182,24 @@ def test_episodes_carry_on_across_iterations(pool):
         assert (steps[1:] == torch.where(mine["next", "done"].reshape(-1)[:-1], 0, steps[:-1] + 1)).all()
     # A reset by another caller between iterations: the kept, unfinished episodes end truncated.
     kept = torch.cat(collector._kept)
+    kept_ids = np.concatenate([m[0] for m in collector._marks[: len(collector._kept)]])  # set when yielded
     pool.reset()
-    nxt = next(iter(collector))
-    unfinished = ~kept["next", "done"].reshape(-1)
-    assert unfinished.any()
-    head = nxt[: len(kept)]
-    last = {int(e): j for j, e in enumerate(head["env_index"].tolist())}
-    for j in last.values():
-        if unfinished[j]:
-            assert head["next", "truncated"][j].all() and head["next", "done"][j].all()
-    assert (nxt["step_count"][len(kept) :].reshape(-1)[:N] == 0).all(), "every env restarted"
+    batches = iter(collector)
+    nxt = torch.cat([next(batches) for _ in range(4)])  # the kept transitions, then each env's new episodes
+    batches.close()
+    cut = 0
+    for i in range(N):
+        mine = (kept["env_index"] == i).nonzero().reshape(-1)
+        if not len(mine) or kept["next", "done"][mine[-1]].all():
+            continue
+        old = nxt[nxt["collector", "traj_ids"] == int(kept_ids[mine[-1]])]
+        assert old["next", "truncated"][-1].all() and old["next", "done"][-1].all(), f"env {i}'s episode was cut"
+        assert not old["next", "done"][:-1].any()
+        cut += 1
+    assert cut, "an episode was under way when the pool was reset"
+    fresh = nxt[nxt["collector", "traj_ids"] >= int(kept_ids.max()) + 1]
+    for i in range(N):
+        assert fresh[fresh["env_index"] == i]["step_count"].reshape(-1)[0] == 0, "every env restarted"
 
 
 def test_random_policy_and_weight_updates_as_torchrls_collectors_take_them(pool):
