@@ -30,6 +30,7 @@ from maniskill_torchrl.envs.async_pool import ManiSkillAsyncEnvPool
 __all__ = ["AsyncPoolCollector"]
 
 _TRAJ_IDS = ("collector", "traj_ids")
+_MARKS = (_TRAJ_IDS, "step_count", ("next", "step_count"))  # the collector's own entries
 
 
 class AsyncPoolCollector(BaseCollector):
@@ -124,11 +125,15 @@ class AsyncPoolCollector(BaseCollector):
         # Per env: its trajectory id and the steps of its episode so far; the next new id.
         self._traj_ids = np.zeros(n, dtype=np.int64)  # set when the episodes start
         self._next_traj = 0
-        self._step_count = np.zeros((n, 1), dtype=np.int64)
-        self._marks: list[tuple[np.ndarray, np.ndarray]] = []  # per chunk received, not yet set
-        # Between iterations: transitions received and not yet yielded, roots not yet acted on,
-        # and the pool's count of foreign steps and resets when the episodes were last under way.
-        self._kept: list[TensorDictBase] = []
+        self._step_count = np.zeros(n, dtype=np.int64)
+        # The transitions received and not yet yielded, rows [0, cursor) of a buffer of
+        # frames_per_batch + num_envs rows (a receive brings num_envs at most), made on the first
+        # receive; its entries as numpy views, for the pool's and the marks' copies.
+        self._buffer: TensorDictBase | None = None
+        self._arrays: dict = {}
+        self._cursor = 0
+        # Roots not acted on yet (after a drain, or a failing policy), and the pool's count of
+        # foreign steps and resets when the episodes were last under way.
         self._held: list[TensorDictBase] = []
         self._epoch: int | None = None
         self._running = False
@@ -148,41 +153,63 @@ class AsyncPoolCollector(BaseCollector):
             index = index.tolist()
         self.env.async_step_and_maybe_reset_send(roots, env_index=index)
 
-    def _mark(self, transitions: TensorDictBase) -> TensorDictBase:
-        """Trajectory ids and step counts of ``transitions``, then new ids for the envs whose
-        episode ended; the entries are set on the whole batch at once (:meth:`_with_marks`)."""
-        index = transitions.get("env_index").numpy()
-        counts = self._step_count[index]
-        self._marks.append((self._traj_ids[index], counts))
-        done = transitions.get(("next", "done")).numpy().reshape(-1)
-        self._step_count[index] = np.where(done[:, None], 0, counts + 1)
+    def _receive(self) -> TensorDictBase:
+        """Receives at least ``min_get`` transitions into the buffer at the cursor; returns the
+        roots of those envs' next steps."""
+        pool, start = self.env, self._cursor
+        fast = getattr(pool, "_into", None) is not None and self._buffer is not None
+        if fast:  # one numpy copy per entry, straight from the pool's rows (ManiSkillAsyncEnvPool)
+            rows, done, roots = pool._recv_into(start, self.min_get)
+        else:
+            transitions, roots = pool.async_step_and_maybe_reset_recv(min_get=self.min_get)
+            index = transitions.get("env_index")  # TorchRL's pools: python ints
+            rows = np.asarray(index.tolist() if not isinstance(index, torch.Tensor) else index.numpy(), np.int64)
+            transitions = transitions.exclude(*_MARKS, inplace=False)
+            transitions.set("env_index", torch.from_numpy(rows))
+            if self._buffer is None:
+                self._make_buffer(transitions)
+            self._buffer[start : start + len(rows)] = transitions
+            done = transitions.get(("next", "done")).numpy().reshape(-1)
+        self._cursor = end = start + len(rows)
+        self._mark(rows, done, start, end)
+        if not fast and isinstance(pool, ManiSkillAsyncEnvPool):
+            pool._plan_into({k: v for k, v in self._arrays.items() if k not in _MARKS})
+        return roots
+
+    def _make_buffer(self, example: TensorDictBase) -> None:
+        rows = self.frames_per_batch + self.env.num_envs
+        example = example[:1].exclude(*_MARKS, inplace=False)
+        example.set(_TRAJ_IDS, torch.zeros(1, dtype=torch.int64))
+        example.set("step_count", torch.zeros(1, 1, dtype=torch.int64))
+        example.set(("next", "step_count"), torch.zeros(1, 1, dtype=torch.int64))
+        self._buffer = example.expand(rows).clone()
+        self._arrays = {key: self._buffer.get(key).numpy() for key in self._buffer.keys(True, True)}
+
+    def _mark(self, rows: np.ndarray, done: np.ndarray, start: int, end: int) -> None:
+        """Trajectory ids and step counts of the transitions at ``start:end`` (envs ``rows``), then
+        new ids for the envs whose episode ended."""
+        arrays, counts = self._arrays, self._step_count[rows]
+        arrays[_TRAJ_IDS][start:end] = self._traj_ids[rows]
+        arrays["step_count"][start:end, 0] = counts
+        arrays[("next", "step_count")][start:end, 0] = counts + 1
+        self._step_count[rows] = np.where(done, 0, counts + 1)
         if done.any():
-            ended = index[done]
+            ended = rows[done]
             self._traj_ids[ended] = np.arange(self._next_traj, self._next_traj + len(ended))
             self._next_traj += len(ended)
-        return transitions
 
-    def _split(self, chunks: list[TensorDictBase]) -> tuple[list[TensorDictBase], int, TensorDictBase]:
-        """A batch of the first ``frames_per_batch`` transitions of ``chunks``, with their ids and step
-        counts, each trajectory's transitions side by side and in order (what ``split_trajectories``
-        and ``SliceSampler`` read); and the chunks and count left."""
-        frames = self.frames_per_batch
-        joined = torch.cat(chunks) if len(chunks) > 1 else chunks[0]
-        ids, counts = self._joined_marks(len(chunks))
-        rest = joined[frames:]
-        if rest.shape[0]:  # its marks go back, set with its own batch
-            self._marks.insert(0, (ids[frames:], counts[frames:]))
-        out = joined[:frames]
-        out.set(_TRAJ_IDS, torch.from_numpy(ids[:frames]))
-        out.set("step_count", torch.from_numpy(counts[:frames]))
-        out.set(("next", "step_count"), torch.from_numpy(counts[:frames] + 1))
-        out = out[torch.argsort(out.get(_TRAJ_IDS), stable=True)]
-        return ([rest] if rest.shape[0] else []), rest.shape[0], out
-
-    def _joined_marks(self, count: int) -> tuple[np.ndarray, np.ndarray]:
-        """The marks of the first ``count`` chunks, as one."""
-        marks, self._marks = self._marks[:count], self._marks[count:]
-        return np.concatenate([m[0] for m in marks]), np.concatenate([m[1] for m in marks])
+    def _batch(self) -> TensorDictBase:
+        """The first ``frames_per_batch`` transitions, a copy, each trajectory's transitions side by
+        side and in order (what ``split_trajectories`` and ``SliceSampler`` read); the rest move
+        to the front of the buffer."""
+        frames, cursor = self.frames_per_batch, self._cursor
+        ids = self._buffer.get(_TRAJ_IDS)[:frames]
+        out = self._buffer[torch.argsort(ids, stable=True)]  # a gather: the buffer is free again
+        if cursor > frames:
+            for array in self._arrays.values():
+                array[: cursor - frames] = array[frames:cursor]
+        self._cursor = cursor - frames
+        return out
 
     def _start(self) -> None:
         """Every env's episodes start (or go on from the last iteration, when nothing came between)."""
@@ -194,8 +221,8 @@ class AsyncPoolCollector(BaseCollector):
             everyone = list(range(pool.num_envs))
             pool.async_reset_send(env_index=everyone)
             self._held = [pool.async_reset_recv(min_get=pool.num_envs)]
-            self._step_count[:] = 0
             n = pool.num_envs
+            self._step_count[:] = 0
             self._traj_ids[:] = np.arange(self._next_traj, self._next_traj + n)
             self._next_traj += n
             self._epoch = getattr(pool, "_epoch", None)
@@ -211,69 +238,55 @@ class AsyncPoolCollector(BaseCollector):
 
     def _truncate_kept(self) -> None:
         """The kept transitions' unfinished episodes end here: their last transition is truncated."""
-        if not self._kept:
+        if not self._cursor:
             return
-        kept = torch.cat(self._kept) if len(self._kept) > 1 else self._kept[0]
-        merged = self._joined_marks(len(self._kept))
-        self._marks.insert(0, merged)
-        index = kept["env_index"]
-        last = torch.zeros(len(kept), dtype=torch.bool)
-        for i in index.unique().tolist():
-            last[(index == i).nonzero()[-1]] = True
-        cut = last & ~kept["next", "done"].reshape(-1)
-        kept["next", "truncated"][cut] = True
-        kept["next", "done"][cut] = True
-        self._kept = [kept]
+        arrays, cursor = self._arrays, self._cursor
+        index = arrays["env_index"][:cursor]
+        done = arrays[("next", "done")].reshape(len(self._buffer), -1)[:cursor, 0]
+        for i in np.unique(index):
+            last = np.flatnonzero(index == i)[-1]
+            if not done[last]:
+                arrays[("next", "truncated")].reshape(len(self._buffer), -1)[last] = True
+                arrays[("next", "done")].reshape(len(self._buffer), -1)[last] = True
 
     def iterator(self) -> Iterator[TensorDictBase]:
-        pool = self.env
-        stats = self._stats
-        clock = time.perf_counter
+        pool, stats, clock = self.env, self._stats, time.perf_counter
+        # The time blocked waiting for the envs, where the pool measures it; else the whole receive.
+        waited = (lambda: pool.waited) if isinstance(pool, ManiSkillAsyncEnvPool) else clock
+        frames = self.frames_per_batch
         self._start()
-        chunks, self._kept = self._kept, []
-        held = sum(c.shape[0] for c in chunks)
         try:
             while self.total_frames < 0 or self._frames < self.total_frames:
-                t0 = clock()
-                transitions, roots = pool.async_step_and_maybe_reset_recv(min_get=self.min_get)
-                t1 = clock()
+                if self._cursor >= frames:
+                    self._frames += frames
+                    yield self._batch()
+                    continue
+                t0, w0 = clock(), waited()
+                roots = self._receive()
+                t1, w1 = clock(), waited()
                 try:
                     self._act(roots)  # the envs step again while this process does the rest
                 except BaseException:
                     self._held.append(roots)
                     raise
-                finally:
-                    t2 = clock()
-                    self._mark(transitions)
-                    chunks.append(transitions)
-                    held += transitions.shape[0]
-                batches = []
-                while held >= self.frames_per_batch:
-                    chunks, held, out = self._split(chunks)
-                    batches.append(out)
                 stats["cycles"] += 1
-                stats["wait"] += t1 - t0
-                stats["policy"] += t2 - t1
+                stats["wait"] += w1 - w0
+                stats["policy"] += clock() - t1
                 stats["total"] += clock() - t0
-                for out in batches:
-                    self._frames += out.shape[0]
-                    yield out
-                    if 0 <= self.total_frames <= self._frames:
-                        return
         finally:
-            self._kept = chunks
             self._drain()
 
     def _drain(self) -> None:
-        """Receives the steps still under way and keeps them (and their roots) for the next
+        """Receives the steps still under way into the buffer and keeps their roots for the next
         iteration, so that the pool is idle: it can reset, step in lockstep, or close."""
         pool = self.env
         pending = getattr(pool, "_current_step_reset", 0)  # TorchRL's pools count them there
         if pending:
-            transitions, roots = pool.async_step_and_maybe_reset_recv(min_get=pending)
-            self._mark(transitions)
-            self._kept.append(transitions)
-            self._held.append(roots)
+            min_get, self.min_get = self.min_get, pending
+            try:
+                self._held.append(self._receive())
+            finally:
+                self.min_get = min_get
         self._epoch = getattr(pool, "_epoch", None)
 
     def __iter__(self) -> Iterator[TensorDictBase]:
@@ -284,8 +297,10 @@ class AsyncPoolCollector(BaseCollector):
 
     def cycle_stats(self, reset: bool = False) -> dict[str, float]:
         """Mean seconds per cycle (one receive, the policy, one send and the bookkeeping) in this
-        process: ``wait`` (for the envs), ``policy``, ``other`` (the rest: the collector's and the
-        pool's own work, the critical path's overhead), and ``cycles``."""
+        process: ``wait`` (blocked waiting for the envs; for pools other than
+        :class:`~maniskill_torchrl.ManiSkillAsyncEnvPool`, the whole receive), ``policy`` (the
+        policy and the send of its actions), ``other`` (the rest: the receive's and the
+        collector's own work), and ``cycles``."""
         s = self._stats
         n = max(s["cycles"], 1)
         out = {

@@ -40,14 +40,30 @@ class RowStore:
         """Whether every leaf of ``example`` is a CPU tensor (what numpy can hold)."""
         return all(type(value) is torch.Tensor and value.device.type == "cpu" for value in example.values(True, True))
 
+    def array(self, key: Any) -> np.ndarray | None:
+        """The rows of leaf ``key``, or None if there is no such leaf."""
+        try:
+            return self.arrays[self.keys.index(key)]
+        except ValueError:
+            return None
+
     def fits(self, tensordict: TensorDictBase) -> bool:
         if self._top is not None:  # no nested entries: the top-level names say it (a tenth of the cost)
             return frozenset(tensordict.keys()) == self._top
         return frozenset(tensordict.keys(True, True)) == self._leaves
 
-    def write(self, rows: np.ndarray, tensordict: TensorDictBase) -> None:
-        for key, array in zip(self.keys, self.arrays):
-            array[rows] = tensordict.get(key).detach().numpy()
+    def write(self, rows: np.ndarray, tensordict: TensorDictBase, same: dict | None = None) -> None:
+        """``tensordict``'s rows into ``rows``. ``same``: nested dicts of tensors whose values these
+        rows hold already (written with :meth:`put`): a leaf that is still one of them is skipped."""
+        for key, path, array in zip(self.keys, self.paths, self.arrays):
+            value = tensordict.get(key)
+            if same is not None:
+                node = same
+                for name in path:
+                    node = node.get(name) if isinstance(node, dict) else None
+                if node is value:
+                    continue
+            array[rows] = value.detach().numpy()
 
     def read(self, rows: np.ndarray) -> TensorDict:
         tree: dict[str, Any] = {}

@@ -13,6 +13,7 @@ from __future__ import annotations
 import multiprocessing
 import pickle
 import selectors
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -55,6 +56,8 @@ class WorkerPool:
         for i, pipe in enumerate(self.pipes):
             self._selector.register(pipe, selectors.EVENT_READ, i)
         self.closed = False
+        #: seconds spent waiting in :meth:`readable` (the split phase's idle time in the parent)
+        self.waited = 0.0
 
     def ready(self) -> list[tuple]:
         """Each worker's ``(result space, action space, render mode)``, once it has made its env."""
@@ -87,7 +90,10 @@ class WorkerPool:
     def readable(self, timeout: float | None) -> list[int]:
         """The positions whose worker has an answer to read (waits up to ``timeout`` s for one;
         None: until one has; 0: a poll)."""
-        return [key.data for key, _ in self._selector.select(timeout)]
+        start = time.perf_counter()
+        ready = [key.data for key, _ in self._selector.select(timeout)]
+        self.waited += time.perf_counter() - start
+        return ready
 
     def take_done(self, i: int) -> None:
         """Worker ``i``'s answer to a step: :data:`DONE`, or its failure raised."""

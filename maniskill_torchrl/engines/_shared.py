@@ -159,6 +159,11 @@ class SharedBlock:
         """The results of the rows ``rows`` as a tree of ``[k, ...]`` torch tensors (copies)."""
         return _nest(self.layout.result_paths, [torch.from_numpy(a[rows]) for a in self.results])
 
+    def views(self, start: int, stop: int) -> Any:
+        """The result rows ``start:stop`` as a tree of torch tensors that are views of the block (no
+        copy: they change with the block)."""
+        return _nest(self.layout.result_paths, [torch.from_numpy(a[start:stop]) for a in self.results])
+
     def action_row(self, index: int) -> Any:
         """Sub-env ``index``'s action: copies (the block is rewritten at the next step)."""
         return _nest(self.layout.action_paths, [a[index].copy() for a in self.actions])

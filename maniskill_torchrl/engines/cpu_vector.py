@@ -384,16 +384,34 @@ class CPUVectorEnv:
         info)``: the ``[k]`` bool mask of the sub-envs that ended an episode and reset, and
         their reset's observations and infos, ``[done.sum(), ...]``.
         """
-        kind = STEPPING_RESET if autoreset else STEPPING
-        rows = self._receive(kind, min_get, max_get, timeout, env_idx)
+        rows = self.step_recv_rows(min_get, max_get=max_get, timeout=timeout, env_idx=env_idx, autoreset=autoreset)
         block = self._block
         step = block.read_rows(rows)
         reset = None
-        if kind == STEPPING_RESET:
+        if autoreset:
             done = (step[TERMINATED] | step[TRUNCATED]).numpy()
             again = block.read_rows(rows[done] + self.num_envs) if done.any() else {OBS: None, INFO: None}
             reset = (torch.from_numpy(done), again[OBS], again[INFO])
         return rows, (step[OBS], step[REWARD], step[TERMINATED], step[TRUNCATED], step[INFO]), reset
+
+    def step_recv_rows(
+        self,
+        min_get: int = 1,
+        *,
+        max_get: int | None = None,
+        timeout: float | None = None,
+        env_idx: Sequence[int] | None = None,
+        autoreset: bool = False,
+    ) -> np.ndarray:
+        """:meth:`step_recv` without reading the results: the sub-envs whose step is done, in order.
+        Their rows of the block (:attr:`block`; row ``N + i`` for the reset of sub-env ``i``, with
+        ``autoreset``) hold their results until their next call."""
+        return self._receive(STEPPING_RESET if autoreset else STEPPING, min_get, max_get, timeout, env_idx)
+
+    @property
+    def block(self) -> SharedBlock:
+        """The shared block of actions and results (``_shared.py``)."""
+        return self._block
 
     def reset_send(self, env_idx: Sequence[int], seeds: Sequence[int | None] | None = None) -> None:
         """Starts a reset of the sub-envs ``env_idx`` (``seeds``: one per sub-env, None for
@@ -469,7 +487,10 @@ class CPUVectorEnv:
         self._check_open(call)
         if not self.split_phase:
             raise RuntimeError(f"{self!r}: {call}() is a split-phase call: make the env with split_phase=True.")
-        rows = np.asarray(torch.as_tensor(env_idx, device="cpu").reshape(-1), dtype=np.int64)
+        if isinstance(env_idx, np.ndarray) and env_idx.ndim == 1:
+            rows = env_idx.astype(np.int64, copy=False)
+        else:
+            rows = np.asarray(torch.as_tensor(env_idx, device="cpu").reshape(-1), dtype=np.int64)
         if rows.size and (rows.min() < 0 or rows.max() >= self.num_envs):
             raise IndexError(f"{call}: sub-env indices {rows.tolist()} out of range for {self.num_envs} sub-envs.")
         if rows.size > 1 and np.unique(rows).size != rows.size:

@@ -24,10 +24,22 @@ from torchrl.data import Unbounded
 from torchrl.envs import AsyncEnvPool, EnvBase
 
 from maniskill_torchrl._internal.rows import RowStore
+from maniskill_torchrl._private import new_tensordict
+from maniskill_torchrl.engines._worker import INFO, OBS, REWARD, TERMINATED, TRUNCATED
 from maniskill_torchrl.engines.cpu_vector import CPUVectorEnv, check_gather_args
 from maniskill_torchrl.envs.engine_env import ManiSkillEnv, ManiSkillWrapper
 
 __all__ = ["ManiSkillAsyncEnvPool"]
+
+
+def _put(tree: dict, key: Any, value: Any) -> None:
+    """``value`` at ``key`` (a name or a tuple of names) of nested dicts."""
+    if isinstance(key, str):
+        tree[key] = value
+        return
+    for name in key[:-1]:
+        tree = tree.setdefault(name, {})
+    tree[key[-1]] = value
 
 
 class ManiSkillAsyncEnvPool(AsyncEnvPool):
@@ -153,6 +165,8 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         # per send and one indexed read per receive (made on the first send; a TensorDict where the
         # rows hold something numpy cannot, or after the entries sent changed).
         self._sent: RowStore | TensorDictBase | None = None
+        self._into: tuple | None = None  # a collector's plan (_plan_into)
+        self._fresh: tuple | None = None  # the last roots of _recv_into, and their entries
         # Counts the plain steps and resets sent: a collector resumes its episodes only if none came between.
         self._epoch = 0
         return self._inner.output_spec.clone(), self._inner.input_spec.clone()
@@ -171,6 +185,12 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
 
     def _get_child_specs(self) -> list:
         return [{"input_spec": self.input_spec[i], "output_spec": self.output_spec[i]} for i in range(self.num_envs)]
+
+    @property
+    def waited(self) -> float:
+        """Seconds this process has spent waiting for the workers' answers (the rest of a receive is
+        its own work)."""
+        return self._engine._pool.waited
 
     @property
     def is_closed(self) -> bool:
@@ -260,8 +280,12 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
             elif isinstance(sent, RowStore) and not sent.fits(tensordict):
                 # Other entries than before (a new policy): the general, slower rows from now on.
                 self._sent = sent = sent.read(np.arange(self.num_envs))
+                self._into = None
             if isinstance(sent, RowStore):
-                sent.write(env_idx, tensordict)
+                # Roots just made by _recv_into and sent back as they are: only the entries the
+                # policy wrote (or replaced) are new to the rows.
+                fresh, self._fresh = self._fresh, None
+                sent.write(env_idx, tensordict, same=fresh[1] if fresh is not None and fresh[0] is tensordict else None)
             else:
                 sent[torch.from_numpy(env_idx)] = tensordict  # an entry new to the rows is made there
 
@@ -349,6 +373,134 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
             roots = roots.clone()  # step_mdp's entries are the transitions' "next" ones
             roots[done] = restarted
         return self._one(transitions, env_index), self._one(roots, env_index)
+
+    # ------------------------------------------------------------------ the collector's cycle
+    def _plan_into(self, arrays: dict) -> bool:
+        """Plans :meth:`_recv_into` for a collector's buffer: ``arrays`` maps each leaf of a
+        transition (``"env_index"``, the sent entries, the ``"next"`` ones; others are the
+        collector's) to a numpy array ``[capacity, ...]``. Each entry comes straight from where it
+        lies: the sent rows, or the shared block's (found as the memory the batched env's own
+        step and reset entries are views of). Returns whether every entry could be planned so."""
+        self._into = None
+        sent, inner = self._sent, self._inner
+        if not isinstance(sent, RowStore):
+            return False
+        block, n = self._engine.block, self.num_envs
+        results = block.results
+
+        # Where each entry of a step lies in the block: the observation's leaves under OBS (one
+        # Box: "observation"), the declared infos under INFO, the reward and the two flags.
+        by_path = dict(zip(block.layout.result_paths, results))
+        infos = {(td_key,): key for key, td_key in inner.info_keys.items()}
+
+        def source(key: Any, td: TensorDictBase) -> np.ndarray | None:
+            path = (key,) if isinstance(key, str) else tuple(key)
+            special = {("reward",): (REWARD,), ("terminated",): (TERMINATED,), ("truncated",): (TRUNCATED,)}
+            if path in special:
+                where = special[path]
+            elif (OBS,) in by_path:
+                where = (OBS,) if path == ("observation",) else None
+            else:
+                where = (OBS, *path)
+            if path[:1] in infos:
+                where = (INFO, infos[path[:1]], *path[1:])
+            array = by_path.get(where)
+            value = td.get(key)
+            if array is None or array.dtype != value.numpy().dtype or array[:n].size != value.numel():
+                return None
+            return array
+
+        def located(td: TensorDictBase) -> dict:
+            return {key: source(key, td) for key in td.keys(True, True)}
+
+        views = block.views(0, n)
+        nxt = inner._step_tensordict(
+            views[OBS], views[REWARD], views[TERMINATED], views[TRUNCATED], views[INFO], torch.Size([n])
+        )
+        again = block.views(n, 2 * n)
+        restart = inner._reset_tensordict(again[OBS], again[INFO], torch.Size([n]))
+        in_step, in_reset = located(nxt), located(restart)
+        flags = set(self.done_keys)
+        copies, done_dst = [], None
+        for key, dst in arrays.items():
+            path = (key,) if isinstance(key, str) else tuple(key)
+            if path == (self._env_idx_key,):
+                continue
+            if path[0] == "next":
+                sub = path[1] if len(path) == 2 else path[1:]
+                src = in_step.get(sub)
+                if src is None and sub == "done":
+                    done_dst = dst.reshape(-1)
+                    continue
+            else:
+                src = sent.array(key)
+            if src is None:
+                return False
+            copies.append((src, dst.reshape(dst.shape[0], *src.shape[1:])))
+        roots = []  # (key, step rows, reset rows or None: a done flag, False at a start, leaf shape)
+        for key in nxt.keys(True, True):
+            if key in self.reward_keys:
+                continue
+            src = in_step.get(key)
+            if key == "done" or src is None:
+                if key != "done":
+                    return False
+                src = None
+            reset = in_reset.get(key)
+            if reset is None and key not in flags:
+                return False
+            store = sent.array(key)
+            if store is None:
+                return False
+            roots.append((key, src, reset, tuple(nxt.get(key).shape[1:]), store))
+        terminated, truncated = in_step["terminated"], in_step["truncated"]
+        if done_dst is None or terminated is None or truncated is None:
+            return False
+        actions = [(key, sent.array(key)) for key in self.action_keys]
+        env_store = sent.array(self._env_idx_key)
+        if any(a is None for _, a in actions) or env_store is None:
+            return False
+        self._into = (copies, done_dst, arrays[self._env_idx_key], roots, actions, terminated, truncated, env_store)
+        return True
+
+    def _recv_into(self, cursor: int, min_get: int) -> tuple[np.ndarray, np.ndarray, TensorDictBase]:
+        """The collector's receive (after :meth:`_plan_into`): the transitions of the envs whose
+        step is done written into the planned arrays at rows ``cursor:cursor + k``, one numpy
+        copy per entry, and the roots of their next steps (a reset's, for the envs that ended).
+        Returns the envs, their done flags and the roots."""
+        copies, done_dst, env_dst, roots_plan, actions, terminated, truncated, env_store = self._into
+        with self._pool_lock:
+            pending = self._count("step_reset")
+            if min_get > pending:
+                raise RuntimeError(f"Cannot await {min_get} step_reset when only {pending} are being stepped.")
+            rows = self._engine.step_recv_rows(min_get, autoreset=True)
+        k = len(rows)
+        end = cursor + k
+        for src, dst in copies:
+            src.take(rows, axis=0, out=dst[cursor:end])
+        done = terminated[rows] | truncated[rows]
+        done_dst[cursor:end] = done
+        env_dst[cursor:end] = rows
+        ended = done.any()
+        restarted = rows[done] + self.num_envs if ended else None
+        tree: dict = {}
+        # The roots, also written into the sent rows: what the next send leaves as it is, it skips.
+        for key, src, reset, shape, store in roots_plan:
+            value = (done.copy() if src is None else src[rows]).reshape(k, *shape)  # src None: "done"
+            if ended:
+                value[done] = False if reset is None else reset[restarted].reshape(-1, *shape)
+            store[rows] = value
+            _put(tree, key, torch.from_numpy(value))
+        for key, src in actions:
+            _put(tree, key, torch.from_numpy(src[rows]))
+        env_store[rows] = rows
+        tree[self._env_idx_key] = torch.from_numpy(rows)
+        if ended:
+            with self._pool_lock:
+                self._used_seeds(rows[done])
+        roots = new_tensordict(tree, batch_size=torch.Size([k]))
+        self._fresh = (roots, tree)
+        return rows, done, roots
 
     def _restarts(self, obs: Any, info: Any, count: int) -> TensorDictBase:
         """The roots of ``count`` episodes' starts: the reset's entries, every done flag False."""

@@ -14,7 +14,6 @@ import signal
 import threading
 import time
 
-import numpy as np
 import pytest
 import torch
 from torchrl.collectors.utils import split_trajectories
@@ -181,8 +180,8 @@ def test_episodes_carry_on_across_iterations(pool):
         steps = mine["step_count"].reshape(-1)
         assert (steps[1:] == torch.where(mine["next", "done"].reshape(-1)[:-1], 0, steps[:-1] + 1)).all()
     # A reset by another caller between iterations: the kept, unfinished episodes end truncated.
-    kept = torch.cat(collector._kept)
-    kept_ids = np.concatenate([m[0] for m in collector._marks[: len(collector._kept)]])  # set when yielded
+    kept = collector._buffer[: collector._cursor].clone()  # received, not yet yielded
+    kept_ids = kept["collector", "traj_ids"]
     pool.reset()
     batches = iter(collector)
     nxt = torch.cat([next(batches) for _ in range(4)])  # the kept transitions, then each env's new episodes
@@ -237,6 +236,32 @@ def test_a_policy_error_leaves_the_users_pool_open_and_idle(pool):
     assert not pool.is_closed and pool._current_step_reset == 0
     batch = next(iter(collector))  # the collector goes on where it stopped
     assert batch.shape == (100,)
+
+
+def test_the_collector_copies_straight_from_the_pool_and_drives_torchrls_pools_too(pool):
+    """Its cycle writes each entry from the pool's rows into its buffer (planned once); a pool of
+    TorchRL's own, through the public calls, gives batches of the same layout."""
+    import functools
+
+    from torchrl.envs import AsyncEnvPool
+
+    from maniskill_torchrl import ManiSkillEnv
+
+    pool.set_seed(1)
+    ours = next(iter(AsyncPoolCollector(pool, frames_per_batch=8, total_frames=8)))
+    assert pool._into is not None, "the planned copies are in use"
+    make = functools.partial(ManiSkillEnv, "PickCube-v1", batch_size=[], **PICK)
+    theirs_pool = AsyncEnvPool([make] * N, backend="threading")
+    try:
+        collector = AsyncPoolCollector(theirs_pool, frames_per_batch=8, total_frames=16)
+        batches = list(collector)
+    finally:
+        theirs_pool.close()
+    assert [b.shape for b in batches] == [(8,), (8,)]
+    theirs = torch.cat(batches)
+    assert set(theirs.keys(True, True)) == set(ours.keys(True, True))
+    for i in range(N):
+        _chain(theirs, i)
 
 
 def test_a_stuck_env_is_a_warning_then_an_error_never_a_hang(pool):
