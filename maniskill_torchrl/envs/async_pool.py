@@ -284,7 +284,8 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
             if isinstance(sent, RowStore):
                 # Roots just made by _recv_into and sent back as they are: only the entries the
                 # policy wrote (or replaced) are new to the rows.
-                fresh, self._fresh = self._fresh, None
+                fresh = self._fresh
+                self.__dict__["_fresh"] = None  # not EnvBase's (nn.Module's) __setattr__: on the hot path
                 sent.write(env_idx, tensordict, same=fresh[1] if fresh is not None and fresh[0] is tensordict else None)
             else:
                 sent[torch.from_numpy(env_idx)] = tensordict  # an entry new to the rows is made there
@@ -499,7 +500,7 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
             with self._pool_lock:
                 self._used_seeds(rows[done])
         roots = new_tensordict(tree, batch_size=torch.Size([k]))
-        self._fresh = (roots, tree)
+        self.__dict__["_fresh"] = (roots, tree)
         return rows, done, roots
 
     def _restarts(self, obs: Any, info: Any, count: int) -> TensorDictBase:
