@@ -354,10 +354,10 @@ class CPUVectorEnv:
         block = self._block
         block.write_action_rows(rows, to_numpy(action))
         if autoreset:
-            seeds = [None] * len(rows) if reset_seeds is None else list(reset_seeds)
+            seeds = [None] * len(rows) if reset_seeds is None else reset_seeds
             if len(seeds) != len(rows):
                 raise ValueError(f"step_send: {len(seeds)} reset seeds for {len(rows)} sub-envs.")
-            block.seeds[rows] = [-1 if s is None else int(s) for s in seeds]
+            block.seeds[rows] = seeds if isinstance(seeds, np.ndarray) else [-1 if s is None else int(s) for s in seeds]
         try:
             self._pool.wake_some(rows.tolist(), STEP_RESET if autoreset else STEP)
         except (EOFError, OSError) as err:
@@ -566,6 +566,8 @@ class CPUVectorEnv:
             ready = self._pool.readable(wait)
             if ready:
                 self._read_answers(ready)
+                if deadline is None and np.count_nonzero(arrived & mine) >= min_get:
+                    break  # everything ready at that select is in: no second look
                 continue
             now = time.monotonic()
             if got >= min_get and (deadline is None or now >= deadline):

@@ -228,9 +228,9 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         self._next_seed[:] = int(seed) + np.arange(self.num_envs)
         self._rngs = [np.random.RandomState((int(seed) + i) % 2**32) for i in range(self.num_envs)]
 
-    def _seeds(self, env_idx: np.ndarray) -> list[int]:
+    def _seeds(self, env_idx: np.ndarray) -> np.ndarray:
         """The next reset seed of each env of ``env_idx``, not yet used up."""
-        return self._next_seed[env_idx].tolist()
+        return self._next_seed[env_idx]
 
     def _used_seeds(self, env_idx: np.ndarray) -> None:
         """The envs of ``env_idx`` have reset: their next reset takes their stream's next draw."""
