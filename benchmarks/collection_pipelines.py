@@ -25,7 +25,9 @@ import warnings
 
 from benchmarks.alternate import child_ready, child_result
 
-ENV_ID = "PickCube-v1"
+#: The task: PickCube-v1, or ``$BENCH_ENV_ID`` (read by every process that imports this module, gym's
+#: workers included), e.g. the many-core emulator's replay task (``bench_many_cores.py``).
+ENV_ID = os.environ.get("BENCH_ENV_ID") or "PickCube-v1"
 EPISODE = 50
 SEED = 0
 #: What each child reports it ran, besides its measurement (shown in bench_collection's table).
@@ -107,6 +109,15 @@ def env_options(opts: dict) -> dict:
     return out
 
 
+def _register_task() -> None:
+    """A task named ``module:EnvId`` (gymnasium's form, e.g. the replay task's) registers itself when its
+    module is imported: ``gym.make`` imports it, ``ManiSkillEnv``'s check of the id does not."""
+    if ":" in ENV_ID:
+        import importlib
+
+        importlib.import_module(ENV_ID.partition(":")[0])
+
+
 def _worker_env(repeat: int, **env_kwargs):
     """One ParallelEnv worker: ManiSkillEnv -> CPUUnbatch (-> ActionRepeat); without CPUUnbatch
     when ``env_kwargs`` has ``batch_size=[]`` (the env is unbatched already)."""
@@ -115,6 +126,7 @@ def _worker_env(repeat: int, **env_kwargs):
     from maniskill_torchrl import ActionRepeat, CPUUnbatch, ManiSkillEnv
 
     _quiet()
+    _register_task()
     env = ManiSkillEnv(ENV_ID, **_maniskill_kwargs(), **env_kwargs)
     _record_worker(env)
     transforms = ([] if env.batch_size == () else [CPUUnbatch()]) + ([ActionRepeat(repeat)] if repeat > 1 else [])
@@ -558,6 +570,8 @@ def run_child(spec: str, n: int, repeat: int, seconds: float) -> None:
         import torchrl.collectors  # noqa: F401
 
         import maniskill_torchrl  # noqa: F401
+
+        _register_task()
     imports = round(time.perf_counter() - t0, 2)
     out = CHILDREN[kind](n, repeat, seconds, opts)
     import shutil

@@ -24,7 +24,11 @@ seeded random actions; ``step_s``: each sim step's wall time, 3 passes over them
   passes, drawn from an RNG of its own, not torch's), scaled so that the mean step time is the
   target's: ``step_ms`` (a ``gym.make`` keyword) or else ``$MANISKILL_REPLAY_STEP_MS`` (read where
   the env is made, in the worker), a number of milliseconds or a name of :data:`TARGETS`; default
-  ``"h200"``. The env's own work counts in that time: it sleeps what is left of it
+  ``"h200"``: the mean time per step with the resets counted in (one per 50 steps), as a loop of
+  steps and resets measures a machine's steps/s. The times are those of steps under
+  :func:`torch.inference_mode` (the library's workers step so); a step taken with autograd's grad
+  mode on (gymnasium's worker loop) lasts :data:`GRAD_FACTOR` times longer, as a real sim's does
+  (``grad_factor``). The env's own work counts in that time: it sleeps what is left of it
   (:func:`time.sleep`, with Linux's timer slack at 1 ns in the sleeping thread).
 
 Register it by importing this module; a process that has not can name it as
@@ -63,13 +67,16 @@ from mani_skill.utils.registration import REGISTERED_ENVS, register_env
 __all__ = [
     "DATA",
     "ENV_ID",
+    "GRAD_FACTOR",
     "REPLAY_ID",
     "SPREAD_ENV",
     "STEP_MS_ENV",
     "TARGETS",
     "ReplayPickCube",
     "load_recording",
+    "shrink_times",
     "target_step_s",
+    "time_scale",
     "time_spread",
 ]
 
@@ -82,6 +89,10 @@ SPREAD_ENV = "MANISKILL_REPLAY_SPREAD"
 #: host (2026-11-28), one raw PickCube-v1 env under inference mode (484 steps/s), and each of 15
 #: independent ones together (5,623 steps/s for 15); ``"recorded"``: the recording's own times.
 TARGETS = {"h200": 1000 / 484, "h200-loaded": 15 * 1000 / 5623, "recorded": None}
+#: What a PickCube-v1 step costs in autograd's grad mode over inference mode (the H200 host: 484 steps/s
+#: in inference mode, 386 in grad mode, 2026-11-28). The recording is in inference mode; a step taken
+#: with grad enabled (gymnasium's worker loop) lasts this much longer, as a real sim's would.
+GRAD_FACTOR = 484 / 386
 DEFAULT_TARGET = "h200"
 MAX_EPISODE_STEPS = 50
 
@@ -126,6 +137,18 @@ def target_step_s(step_ms: float | str | None = None) -> float | None:
     return float(step_ms) / 1000.0
 
 
+def time_scale(step_ms: float | str | None = None, recording: dict[str, Any] | None = None) -> float:
+    """The factor on every recorded time for the target ``step_ms`` (:func:`target_step_s`): the
+    target is the mean time per sim step with the resets counted in, one per episode of recorded
+    steps, as a loop of steps and resets on a real machine measures its steps/s."""
+    rec = recording if recording is not None else load_recording()
+    target = target_step_s(step_ms)
+    if target is None:
+        return 1.0
+    per_step = float(rec["step_s"].mean()) + float(rec["reset_s"].mean()) / rec["obs"].shape[1]
+    return target / per_step
+
+
 def time_spread(spread: float | str | None = None) -> float:
     """The spread of the step times: ``spread``, else ``$MANISKILL_REPLAY_SPREAD``, else 1 (as recorded)."""
     if spread is None:
@@ -136,7 +159,8 @@ def time_spread(spread: float | str | None = None) -> float:
     return spread
 
 
-def _shrunk(times: np.ndarray, spread: float) -> np.ndarray:
+def shrink_times(times: np.ndarray, spread: float) -> np.ndarray:
+    """Each of ``times`` as ``mean + spread * (t - mean)``: the same mean, the spread shrunk."""
     mean = float(times.mean())
     return mean + spread * (times - mean)
 
@@ -189,6 +213,7 @@ class ReplayPickCube(BaseEnv):
         render_backend: str | None = "gpu",
         step_ms: float | str | None = None,
         spread: float | str | None = None,
+        grad_factor: float = GRAD_FACTOR,
         timing_seed: int | None = None,
         data: str | None = None,
     ) -> None:
@@ -228,12 +253,12 @@ class ReplayPickCube(BaseEnv):
         self.action_space = batch_space(self.single_action_space, n=1)
         self._orig_single_action_space = copy.deepcopy(self.single_action_space)
         # The step time: the recorded times scaled so that their mean is the target's.
-        target = target_step_s(step_ms)
-        self._time_scale = 1.0 if target is None else target / float(rec["step_s"].mean())
+        self._time_scale = time_scale(step_ms, rec)
         self._spread = time_spread(spread)
         # each recorded time t as mean + spread * (t - mean), then scaled: the same mean, its spread shrunk
-        self._step_times = _shrunk(rec["step_s"], self._spread) * self._time_scale
-        self._reset_times = _shrunk(rec["reset_s"], self._spread) * self._time_scale
+        self._step_times = shrink_times(rec["step_s"], self._spread) * self._time_scale
+        self._reset_times = shrink_times(rec["reset_s"], self._spread) * self._time_scale
+        self._grad_factor = float(grad_factor)
         self._timing = np.random.default_rng(timing_seed)
         #: seconds slept by this env (its steps and resets), and the sleeps' count
         self.slept_s, self.sleeps = 0.0, 0
@@ -278,7 +303,9 @@ class ReplayPickCube(BaseEnv):
         return {key: torch.from_numpy(rec["info_" + key][e, k : k + 1].copy()) for key in rec["info_keys"]}
 
     def _sleep_until(self, t0: float, dt: float) -> None:
-        """Sleeps what is left of ``dt`` seconds since ``t0``."""
+        """Sleeps what is left of ``dt`` seconds (times the grad factor in grad mode) since ``t0``."""
+        if torch.is_grad_enabled() and not torch.is_inference_mode_enabled():
+            dt *= self._grad_factor
         _fine_timer_slack()
         left = t0 + dt - time.perf_counter()
         if left > 0:

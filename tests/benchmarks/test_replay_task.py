@@ -155,43 +155,58 @@ def test_no_sapien_scene(monkeypatch):
     assert not base.gpu_sim_enabled and base.num_envs == 1 and base.device == torch.device("cpu")
 
 
+def _steps(env, k: int, seed: int | None = None) -> None:
+    """A reset with ``seed`` (if given) and ``k`` steps, under inference mode (as the recording's and the
+    library's workers' steps)."""
+    with torch.inference_mode():
+        if seed is not None:
+            env.reset(seed=seed)
+        for _ in range(k):
+            env.step(env.action_space.sample())
+
+
 def test_sleeps_the_scaled_recorded_times(no_sleep, monkeypatch):
     rec = replay.load_recording()
     steps, resets = rec["step_s"], rec["reset_s"]
-    # spread 0: every step lasts the target mean, every reset the recorded mean reset scaled alike
+    # spread 0: every step and every reset lasts the recorded mean, scaled so that an episode's 50 steps
+    # and its reset last 50 x the target
     env = gym.make(replay.REPLAY_ID, num_envs=1, step_ms=3.0, spread=0.0, **KWARGS)
-    env.reset(seed=2)
-    for _ in range(50):
-        env.step(env.action_space.sample())
-    scale = 3e-3 / steps.mean()
+    _steps(env, 50, seed=2)
+    scale = env.unwrapped.time_scale
     np.testing.assert_allclose(no_sleep[0], resets.mean() * scale)
-    np.testing.assert_allclose(no_sleep[1:], 3e-3)
+    np.testing.assert_allclose(no_sleep[1:], steps.mean() * scale)
+    assert sum(no_sleep) == pytest.approx(50 * 3e-3)
     # spread 1 (as recorded): step k of episode e sleeps one of the passes' times of (e, k), scaled;
     # the target from the environment (read where the env is made), a name of TARGETS
     monkeypatch.setenv(replay.STEP_MS_ENV, "h200")
     no_sleep.clear()
     env = gym.make(replay.REPLAY_ID, num_envs=1, timing_seed=0, **KWARGS)
-    scale = replay.TARGETS["h200"] / 1e3 / steps.mean()
+    scale = replay.TARGETS["h200"] / 1e3 / (steps.mean() + resets.mean() / 50)
     assert env.unwrapped.time_scale == pytest.approx(scale)
-    env.reset(seed=4)
-    for _ in range(50):
-        env.step(env.action_space.sample())
+    _steps(env, 50, seed=4)
     assert any(np.isclose(no_sleep[0], resets[:, 4] * scale))
     for k, slept in enumerate(no_sleep[1:]):
         assert np.isclose(slept, steps[:, 4, k] * scale).any(), k
-    # a keyword wins over the environment; the mean over all the recorded times is the target's
+    # a keyword wins over the environment
     env = gym.make(replay.REPLAY_ID, num_envs=1, step_ms="2.5", **KWARGS)
-    assert env.unwrapped.time_scale * steps.mean() == pytest.approx(2.5e-3)
+    assert env.unwrapped.time_scale * (steps.mean() + resets.mean() / 50) == pytest.approx(2.5e-3)
     # ManiSkill's ActionRepeatWrapper(2): one outer step, two sleeps
-    no_sleep.clear()
-    env = gym.make(replay.REPLAY_ID, num_envs=1, step_ms=1.0, spread=0.0, **KWARGS)
     from maniskill_torchrl.wrappers import ActionRepeatWrapper
 
+    env = gym.make(replay.REPLAY_ID, num_envs=1, step_ms=1.0, spread=0.0, **KWARGS)
+    one = steps.mean() * env.unwrapped.time_scale
     wrapped = ActionRepeatWrapper(env, 2)
     wrapped.reset(seed=0)
     no_sleep.clear()
-    wrapped.step(torch.zeros(1, 8))
-    np.testing.assert_allclose(no_sleep, [1e-3, 1e-3])
+    _steps(wrapped, 1)
+    np.testing.assert_allclose(no_sleep, [one, one])
+    # a step in grad mode (gymnasium's worker loop) costs what a real sim's costs there: GRAD_FACTOR more
+    no_sleep.clear()
+    with torch.enable_grad():
+        env.step(torch.zeros(1, 8))
+    with torch.no_grad():
+        env.step(torch.zeros(1, 8))
+    np.testing.assert_allclose(no_sleep, [one * replay.GRAD_FACTOR, one])
 
 
 def test_unseeded_reset_draws_from_torchs_rng(no_sleep):
