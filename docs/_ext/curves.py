@@ -7,7 +7,9 @@ built (``builder-inited``), into ``docs/_generated/curves/`` (git-ignored; no im
   the scripts that plot a run's ``metrics.jsonl``: each CSV row becomes one record of such a log;
 - the collection figures, frames/s against N, this library against gym:
   ``benchmarks/collection/sweep_2cores.csv`` and ``benchmarks/collection/sweep_16cores_h200.csv``
-  (the tables of ``benchmarks/RESULTS.md``, copied).
+  (the tables of ``benchmarks/RESULTS.md``, copied), and ``benchmarks/collection/many_cores_emulated.csv``
+  (written by ``python -m benchmarks.bench_many_cores --csv ...``: the many-core emulator's sweep,
+  with its ideal).
 
 ``draw_all(out_dir)`` draws every picture; ``tests/docs/test_curves.py`` runs it into a temporary
 folder.
@@ -195,6 +197,69 @@ def draw_collection(csv_path: Path, png: Path, title: str, error_bars: bool) -> 
     return png
 
 
+def draw_many_cores(csv_path: Path, png: Path) -> Path:
+    """The emulator's sweep: frames/s against N with the emulated ideal (left, both axes on log
+    scales), and each contender's share of that ideal (right); min-max bars, gym dashed."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = read_csv(csv_path)
+    meta = [line[2:] for line in csv_path.read_text().splitlines() if line.startswith("# ")]
+    date = next((m.split("date ")[1].split(".")[0] for m in meta if "date " in m), "")
+    emulated = next((m.split("Emulated: ")[1].rstrip(".") for m in meta if "Emulated: " in m), "")
+    pipelines = list(dict.fromkeys(r["pipeline"] for r in rows))
+    ns = sorted({r["n"] for r in rows})
+    fig, (left, right) = plt.subplots(1, 2, figsize=(11, 5.4))
+    ideal = {r["n"]: r["ideal_frames_per_s"] for r in rows}
+    left.plot(ns, [ideal[n] for n in ns], ":", color="black", lw=1.2, label="emulated ideal (N envs that never wait)")
+    right.axhline(100, ls=":", color="black", lw=1.2)
+    for i, name in enumerate(pipelines):
+        mine = sorted((r for r in rows if r["pipeline"] == name), key=lambda r: r["n"])
+        xs = [r["n"] * (1 + 0.03 * (i - (len(pipelines) - 1) / 2)) for r in mine]
+        style = dict(color=f"C{i}", marker="os^D"[i % 4], ms=6, lw=2 if name != "gym" else 1.3)
+        if name == "gym":
+            style["ls"] = "--"
+        err = [[r["frames_per_s"] - r["min"] for r in mine], [r["max"] - r["frames_per_s"] for r in mine]]
+        left.errorbar(xs, [r["frames_per_s"] for r in mine], yerr=err, capsize=3, label=mine[0]["label"], **style)
+        right.plot(xs, [100 * r["share"] for r in mine], **style)
+        for x, r in zip(xs, mine):
+            if r.get("ratio_to_gym") is not None and r["n"] in (ns[-1], 15):
+                right.annotate(
+                    f"{r['ratio_to_gym']:.2f}x gym",
+                    (x, 100 * r["share"]),
+                    textcoords="offset points",
+                    xytext=(6, 4),
+                    fontsize=7,
+                    color=f"C{i}",
+                )
+    for ax in (left, right):
+        ax.set_xscale("log", base=2)
+        ax.set_xlim(ns[0] / 1.3, ns[-1] * 1.7)
+        ax.set_xticks(ns)
+        ax.set_xticklabels([str(n) for n in ns])
+        ax.set_xlabel("N (sub-envs, one process each)")
+        ax.grid(alpha=0.3)
+    from matplotlib.ticker import FuncFormatter
+
+    left.set_yscale("log")
+    left.yaxis.set_major_formatter(FuncFormatter(lambda y, _: f"{y:,.0f}"))
+    left.yaxis.set_minor_formatter(FuncFormatter(lambda y, _: ""))
+    left.set_ylabel("frames/s (agent steps per second, log scale)")
+    right.set_ylabel("share of the emulated ideal (%)")
+    right.set_ylim(0, 110)
+    handles, labels = left.get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=2, fontsize=8, frameon=False)
+    fig.suptitle(
+        f"Collection on the many-core emulator (PickCube-v1 replayed), on 2 cores, {date}\n{emulated}", fontsize=9
+    )
+    fig.tight_layout(rect=(0, 0.1, 1, 1))
+    fig.savefig(png, dpi=100)
+    plt.close(fig)
+    return png
+
+
 def draw_all(out_dir: Path) -> list[Path]:
     """Draws every picture into ``out_dir``; returns their paths."""
     import matplotlib
@@ -230,6 +295,7 @@ def draw_all(out_dir: Path) -> list[Path]:
             error_bars=False,
         )
     )
+    pngs.append(draw_many_cores(data / "many_cores_emulated.csv", out_dir / "collection_many_cores_emulated.png"))
     return pngs
 
 

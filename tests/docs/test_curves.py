@@ -34,6 +34,7 @@ def test_every_picture_drawn(pngs):
         "bc.png",
         "collection_2cores.png",
         "collection_16cores.png",
+        "collection_many_cores_emulated.png",
     }
     for png in pngs:
         data = png.read_bytes()
@@ -56,3 +57,15 @@ def test_collection_csvs_read(curves):
         for pipeline in ("gym", "batched:t1,rp,dev,em"):
             assert {r["n"] for r in rows if r["pipeline"] == pipeline} == ns, (name, pipeline)
         assert all(isinstance(r["frames_per_s"], int) for r in rows)
+
+
+def test_many_cores_csv_reads(curves):
+    # the emulator's sweep: gym, the README pipeline and the asynchronous path at every N, with the ideal
+    rows = curves.read_csv(ROOT / "benchmarks" / "collection" / "many_cores_emulated.csv")
+    ns = {r["n"] for r in rows}
+    assert {1, 15, 64} <= ns
+    for pipeline in ("gym", "readme", "async"):
+        assert {r["n"] for r in rows if r["pipeline"] == pipeline} == ns, pipeline
+    for r in rows:
+        assert isinstance(r["frames_per_s"], int) and r["ideal_frames_per_s"] > r["frames_per_s"] > 0
+        assert abs(r["share"] - r["frames_per_s"] / r["ideal_frames_per_s"]) < 0.01 * r["share"] + 0.001
