@@ -29,7 +29,16 @@ from __future__ import annotations
 import multiprocessing as mp
 from collections.abc import Sequence
 
-__all__ = ["vulkan_loaded", "prefer_spawn", "preload_forkserver", "FORK_AFTER_RENDERER", "check_start_method"]
+import numpy as np
+
+__all__ = [
+    "vulkan_loaded",
+    "prefer_spawn",
+    "preload_forkserver",
+    "FORK_AFTER_RENDERER",
+    "check_start_method",
+    "entropy_seed",
+]
 
 FORK_AFTER_RENDERER = (
     "This process has created a SAPIEN renderer (a ManiSkill env was built here), and processes "
@@ -104,3 +113,9 @@ def preload_forkserver(modules: Sequence[str]) -> bool:
     if missing:
         mp.set_forkserver_preload(current + missing)
     return True
+
+
+def entropy_seed() -> int:
+    """A seed from the operating system's entropy, in ``[0, 2**31)``: the envs of processes forked
+    from one process share its RNG state, and would otherwise draw alike."""
+    return int(np.random.SeedSequence().entropy % 2**31)

@@ -23,6 +23,7 @@ from tensordict import TensorDictBase
 from torchrl.data import Unbounded
 from torchrl.envs import AsyncEnvPool, EnvBase
 
+from maniskill_torchrl._internal.mp import entropy_seed
 from maniskill_torchrl._internal.rows import RowStore
 from maniskill_torchrl._private import new_tensordict
 from maniskill_torchrl.engines._worker import INFO, OBS, REWARD, TERMINATED, TRUNCATED
@@ -224,7 +225,7 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
     # ------------------------------------------------------------------ seeds
     def _set_seed(self, seed: int | None) -> None:
         if seed is None:  # every env its own episodes, as gym's AsyncVectorEnv gives
-            seed = int(np.random.SeedSequence().entropy % 2**31)
+            seed = entropy_seed()
         self._next_seed[:] = int(seed) + np.arange(self.num_envs)
         self._rngs = [np.random.RandomState((int(seed) + i) % 2**32) for i in range(self.num_envs)]
 

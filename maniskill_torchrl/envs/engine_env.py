@@ -23,6 +23,7 @@ import torch
 from tensordict import TensorDictBase
 
 from maniskill_torchrl._internal.assets import check_assets, no_asset_prompt
+from maniskill_torchrl._internal.mp import entropy_seed
 from maniskill_torchrl._internal.rendering import default_render_backend, remember_render_device, render_device_errors
 from maniskill_torchrl.engines.cpu_vector import CPUVectorEnv
 from maniskill_torchrl.envs import maniskill
@@ -80,10 +81,20 @@ class ManiSkillWrapper(maniskill.ManiSkillWrapper):
             self._inference = False  # the sub-envs run it, and only copies leave them
         env = super()._build_env(env, **kwargs)
         self._workers = engine
+        if engine is not None:
+            self._set_seed(None)
         # The workers' repeat: the one asked for the next step (0: none), else the engine's own.
         self._plain_repeat = engine.repeat if engine is not None else 1
         self._next_repeat = 0
         return env
+
+    def _set_seed(self, seed: int | None) -> None:
+        # The sub-envs' processes fork from one: without a seed, ManiSkill's unseeded resets would
+        # replay one episode in each. A seed from the OS's entropy gives each its own, as gym's
+        # AsyncVectorEnv does.
+        if seed is None and self._workers is not None:
+            seed = entropy_seed()
+        super()._set_seed(seed)
 
     @property
     def max_episode_steps(self) -> int | None:

@@ -154,6 +154,13 @@ def test_specs_are_the_single_env_specs_batched(pick):
     assert ("agent", "qpos") in pick.observation_spec.keys(True, True)
 
 
+def test_without_a_seed_every_sub_env_plays_its_own_episode(pick_vec):
+    """First to use the env, before any seed: its worker processes fork from one process, and
+    ManiSkill's unseeded resets would replay one episode in each (issue 51's finding 2, lockstep)."""
+    obs = pick_vec.reset()["observation"]
+    assert all(not torch.equal(obs[i], obs[j]) for i in range(3) for j in range(i)), "two sub-envs alike"
+
+
 def test_check_env_specs(pick_vec):
     check_env_specs(pick_vec, seed=0)
 
