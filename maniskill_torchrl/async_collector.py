@@ -67,7 +67,7 @@ class AsyncPoolCollector(BaseCollector):
     stepped or reset by another caller in between, every env restarts, and the last kept
     transition of each unfinished episode is marked ``("next", "truncated")``. An exception (in
     the policy, say) leaves the pool open and idle: the collector only closes it in
-    :meth:`shutdown`.
+    ``shutdown()``.
 
     :meth:`cycle_stats` says where the main process spends each cycle (wait, policy, the rest).
 

@@ -221,8 +221,8 @@ class CPUVectorEnv:
         self._sent_at = np.zeros(int(num_envs))
         self._warned = np.zeros(int(num_envs), np.bool_)
         self._watch_at = 0.0
-        #: split phase: seconds a sub-env may take over one call before a warning, then before an
-        #: error that closes the env (a stuck worker); None: never.
+        #: Seconds a sub-env may take over one split-phase call before a warning (``warn_after``),
+        #: then before an error that closes the env (``fail_after``: a stuck worker); None: never.
         self.warn_after: float | None = 30.0
         self.fail_after: float | None = 300.0
         self._pool: WorkerPool | None = None
@@ -409,8 +409,8 @@ class CPUVectorEnv:
         return self._receive(STEPPING_RESET if autoreset else STEPPING, min_get, max_get, timeout, env_idx)
 
     @property
-    def block(self) -> SharedBlock:
-        """The shared block of actions and results (``_shared.py``)."""
+    def block(self) -> Any:
+        """The shared block of actions and results (``engines/_shared.py``'s ``SharedBlock``)."""
         return self._block
 
     def reset_send(self, env_idx: Sequence[int], seeds: Sequence[int | None] | None = None) -> None:
