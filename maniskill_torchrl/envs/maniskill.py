@@ -1313,7 +1313,7 @@ class ManiSkillEnv(ManiSkillWrapper, metaclass=_ManiSkillEnvMeta):
         elif num_envs > 1:
             raise ValueError(
                 f"num_envs={num_envs} on ManiSkill's CPU sim, which holds one env per "
-                "process: pass num_workers={num_envs} for a ParallelEnv of single "
+                f"process: pass num_workers={num_envs} for a ParallelEnv of single "
                 "envs, or sim_backend='gpu' on a CUDA machine."
             )
         with warnings.catch_warnings():

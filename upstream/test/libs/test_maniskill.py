@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import os
+import re
 import subprocess
 import sys
 
@@ -451,7 +452,12 @@ class TestManiSkillErrors:
             ManiSkillEnv("PickCub-v1")
 
     def test_several_envs_on_cpu_sim(self):
-        with pytest.raises(ValueError, match="num_workers"):
+        message = (
+            "num_envs=2 on ManiSkill's CPU sim, which holds one env per process: pass "
+            "num_workers=2 for a ParallelEnv of single envs, or sim_backend='gpu' on a "
+            "CUDA machine."
+        )
+        with pytest.raises(ValueError, match=f"^{re.escape(message)}$"):
             ManiSkillEnv(_TASK, num_envs=2, sim_backend="cpu")
 
     def test_bad_arguments(self):
