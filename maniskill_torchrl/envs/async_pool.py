@@ -27,7 +27,7 @@ from maniskill_torchrl._internal.mp import entropy_seed
 from maniskill_torchrl._internal.rows import RowStore
 from maniskill_torchrl._private import new_tensordict
 from maniskill_torchrl.engines._worker import INFO, OBS, REWARD, TERMINATED, TRUNCATED
-from maniskill_torchrl.engines.cpu_vector import CPUVectorEnv, check_gather_args
+from maniskill_torchrl.engines.cpu_vector import CPUVectorEnv
 from maniskill_torchrl.envs.engine_env import ManiSkillEnv, ManiSkillWrapper
 
 __all__ = ["ManiSkillAsyncEnvPool"]
@@ -306,13 +306,8 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
     ) -> tuple[np.ndarray, tuple, tuple | None]:
         engine = self._engine
         if env_index is None:
-            kind = "step_reset" if autoreset else "step"
             min_get = self.min_get if min_get is None else min_get
-            check_gather_args(min_get, max_get, timeout)
-            with self._pool_lock:
-                pending = self._count(kind)
-                if min_get > pending:
-                    raise RuntimeError(f"Cannot await {min_get} {kind} when only {pending} are being stepped.")
+            with self._pool_lock:  # the engine checks the arguments (TorchRL's rules) and what is under way
                 return engine.step_recv(min_get, max_get=max_get, timeout=timeout, autoreset=autoreset)
         only = np.asarray(torch.as_tensor(env_index, device="cpu").reshape(-1), dtype=np.int64)
         if only.size == 1:
@@ -472,9 +467,6 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         Returns the envs, their done flags and the roots."""
         copies, done_dst, env_dst, roots_plan, actions, terminated, truncated, env_store = self._into
         with self._pool_lock:
-            pending = self._count("step_reset")
-            if min_get > pending:
-                raise RuntimeError(f"Cannot await {min_get} step_reset when only {pending} are being stepped.")
             rows = self._engine.step_recv_rows(min_get, autoreset=True)
         k = len(rows)
         end = cursor + k
@@ -534,11 +526,7 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         engine = self._engine
         if env_index is None:
             min_get = self.min_get if min_get is None else min_get
-            check_gather_args(min_get, max_get, timeout)
             with self._pool_lock:
-                pending = self._count("reset")
-                if min_get > pending:
-                    raise RuntimeError(f"Cannot await {min_get} reset when only {pending} are being reset.")
                 rows, obs, info = engine.reset_recv(min_get, max_get=max_get, timeout=timeout)
         else:
             only = np.asarray(torch.as_tensor(env_index, device="cpu").reshape(-1), dtype=np.int64)
