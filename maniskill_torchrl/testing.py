@@ -182,7 +182,7 @@ def _raw_step_tensordict(env: Any, obs: Any, info: Mapping, reward=None, termina
         entries.update(_as_tensordict(obs, n).to_dict())
     else:
         entries["observation"] = obs
-    for key, td_key in env.info_keys.items():
+    for key, td_key in env.info_entries.items():
         entries[td_key] = info[key]
     if reward is not None:
         entries["reward"] = reward.to(torch.float32).reshape(n, 1)

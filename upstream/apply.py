@@ -90,7 +90,6 @@ class ManiSkillEnvConfig(EnvLibsConfig):
     info_keys: list[str] | None = None
     device: str | None = None
     batch_size: list[int] | None = None
-    inference_mode: bool | None = None
     allow_done_after_reset: bool = False
     num_workers: int = 1
     _target_: str = "torchrl.envs.libs.maniskill.ManiSkillEnv"

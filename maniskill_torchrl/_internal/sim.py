@@ -7,7 +7,7 @@ from typing import Any
 
 import torch
 
-__all__ = ["canonical_device", "maniskill_base_env", "wrapper_attr"]
+__all__ = ["canonical_device", "enable_physx_gpu", "maniskill_base_env", "wrapper_attr"]
 
 
 def maniskill_base_env(env: Any):
@@ -51,3 +51,27 @@ def canonical_device(device: Any, *, current_cuda: int | None = None) -> torch.d
             current_cuda = torch.cuda.current_device() if torch.cuda.is_available() else 0
         device = torch.device("cuda", current_cuda)
     return device
+
+
+def enable_physx_gpu() -> None:
+    """Loads SAPIEN's PhysX GPU library for ManiSkill's GPU sim.
+
+    SAPIEN downloads it on first use: offline, the error says what to do.
+    """
+    import zipfile
+    from pathlib import Path
+
+    import sapien.physx as physx
+
+    if physx.is_gpu_enabled():
+        return
+    try:
+        physx.enable_gpu()
+    except (OSError, zipfile.BadZipFile) as err:
+        folder = Path.home() / ".sapien" / "physx" / physx.version()
+        raise RuntimeError(
+            f"The GPU sim needs SAPIEN's PhysX GPU library (libPhysXGpu_64.so in {folder}), which SAPIEN "
+            f"downloads on first use from its physx-precompiled GitHub release {physx.version()}; that failed: "
+            f"{type(err).__name__}: {err}. Offline, copy that folder from a machine where the GPU sim has run "
+            "once, or use sim_backend='cpu'."
+        ) from err

@@ -84,7 +84,7 @@ def save_trajectories(path: str | Path, rollout: TensorDictBase, env: Any) -> li
             )
         wrapper = inner
     base = wrapper.base_env
-    infos = set(wrapper.info_keys.values())
+    infos = set(wrapper.info_entries.values())
     obs_keys = [k for k in wrapper.observation_spec.keys() if k not in infos and k != "pixels"]
     steps = rollout if rollout.batch_dims > 1 else rollout.unsqueeze(0)
     steps = steps.reshape(-1, steps.shape[-1])  # [rows, T]

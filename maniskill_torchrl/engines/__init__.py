@@ -16,7 +16,8 @@ can do as attributes, which the env core reads without importing the engine:
 - ``reconfigures_partially``: a partial reset may reconfigure the envs it resets;
 - ``repeats_actions``: ``repeat`` and ``set_repeat(k)``, each step's action repeated up to ``k``
   times inside the sub-envs;
-- ``render_frame_shape()``: the ``(H, W, 3)`` of one sub-env's ``render()`` frame.
+- ``render_frame_shape()``: the ``(H, W, 3)`` of one sub-env's ``render()`` frame (also as
+  ManiSkill's ``_human_render_camera_configs``, where the adapter reads it).
 
 Only the factory (:class:`~maniskill_torchrl.ManiSkillEnv`) imports an engine. Names are loaded
 on first use: a worker that unpickles its factory from ``_worker.py`` loads nothing else here.

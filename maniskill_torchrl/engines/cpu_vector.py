@@ -33,6 +33,7 @@ import pickle
 import time
 import warnings
 from collections.abc import Mapping, Sequence
+from types import SimpleNamespace
 from typing import Any
 
 import gymnasium as gym
@@ -722,6 +723,13 @@ class CPUVectorEnv:
     def render_frame_shape(self) -> tuple[int, ...]:
         """``(H, W, 3)`` of one sub-env's ``render()`` frame."""
         return self.call("render_frame_shape")[0]
+
+    @property
+    def _human_render_camera_configs(self) -> dict:
+        """One sub-env's frame size where the TorchRL adapter reads ManiSkill's (one camera of
+        ``height`` x ``width``): rendering every sub-env before a reset fails in ManiSkill."""
+        height, width, _ = self.render_frame_shape()
+        return {"render": SimpleNamespace(height=height, width=width)}
 
     def render(self) -> torch.Tensor:
         """Every sub-env's ``render()``, concatenated: ``[N, H, W, 3]`` uint8 for ``rgb_array``."""

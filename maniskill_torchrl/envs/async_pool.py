@@ -320,7 +320,7 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         sent = self._sent
         transitions = sent.read(rows) if isinstance(sent, RowStore) else sent[index]
         transitions.set(self._env_idx_key, index)
-        transitions.set("next", self._inner._step_tensordict(*step, torch.Size([len(rows)])))
+        transitions.set("next", self._inner._step_tensordict(*step))
         return transitions, index
 
     @staticmethod
@@ -388,7 +388,7 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         # Where each entry of a step lies in the block: the observation's leaves under OBS (one
         # Box: "observation"), the declared infos under INFO, the reward and the two flags.
         by_path = dict(zip(block.layout.result_paths, results))
-        infos = {(td_key,): key for key, td_key in inner.info_keys.items()}
+        infos = {(td_key,): key for key, td_key in inner.info_entries.items()}
 
         def source(key: Any, td: TensorDictBase) -> np.ndarray | None:
             path = (key,) if isinstance(key, str) else tuple(key)
@@ -411,11 +411,9 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
             return {key: source(key, td) for key in td.keys(True, True)}
 
         views = block.views(0, n)
-        nxt = inner._step_tensordict(
-            views[OBS], views[REWARD], views[TERMINATED], views[TRUNCATED], views[INFO], torch.Size([n])
-        )
+        nxt = inner._step_tensordict(views[OBS], views[REWARD], views[TERMINATED], views[TRUNCATED], views[INFO])
         again = block.views(n, 2 * n)
-        restart = inner._reset_tensordict(again[OBS], again[INFO], torch.Size([n]))
+        restart = self._reset_rows(again[OBS], again[INFO], n)
         in_step, in_reset = located(nxt), located(restart)
         flags = set(self.done_keys)
         copies, done_dst = [], None
@@ -496,9 +494,14 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         self.__dict__["_fresh"] = (roots, tree)
         return rows, done, roots
 
+    def _reset_rows(self, obs: Any, info: Any, count: int) -> TensorDictBase:
+        """The reset entries of ``count`` envs, as the env's reset makes them."""
+        inner = self._inner
+        return new_tensordict(inner._to_source(obs, info), batch_size=torch.Size([count]), device=inner.device)
+
     def _restarts(self, obs: Any, info: Any, count: int) -> TensorDictBase:
         """The roots of ``count`` episodes' starts: the reset's entries, every done flag False."""
-        out = self._inner._reset_tensordict(obs, info, torch.Size([count]))
+        out = self._reset_rows(obs, info, count)
         for key in ("done", "terminated", "truncated"):
             out.set(key, torch.zeros(count, 1, dtype=torch.bool))
         return out

@@ -7,12 +7,16 @@ library has.
   shared-memory block for the batch), with the same batch ``[N]``, keys, specs and dtypes as the
   GPU sim. Partial resets there are seeded with the next draw of the env's seeds, so that runs
   stay reproducible from ``set_seed`` whatever each process's torch RNG holds.
+- ManiSkill called under :func:`torch.inference_mode` (by default on the CPU sim).
+- A CPU-sim env on an accelerator (``device="cuda"``) moves each step's host outputs up in one
+  non-blocking transfer (:class:`~maniskill_torchrl._internal.host_gather.HostGather`).
 - The hooks of :class:`~maniskill_torchrl.envs.hooks.EnvHooks`: the workers' action repeat
   (:meth:`~ManiSkillWrapper.request_worker_repeat`) and the host values of what a CPU-sim env on
   an accelerator moved up (:meth:`~ManiSkillWrapper.host_value`).
-- Clear errors where ManiSkill would prompt for a download (``(y|n)`` on stdin) or SAPIEN refuse
-  a second render device (:class:`~maniskill_torchrl.RenderDeviceError`), and no warning for the
-  missing CUDA render device of a CPU-only machine.
+- ``frame_skip`` refused for :class:`~maniskill_torchrl.transforms.ActionRepeat`, errors that
+  name the fix for a missing action and a closed env, and clear errors where ManiSkill would
+  prompt for a download (``(y|n)`` on stdin), SAPIEN refuse a second render device
+  (:class:`~maniskill_torchrl.RenderDeviceError`) or the GPU sim lack its PhysX library offline.
 """
 
 from __future__ import annotations
@@ -23,12 +27,22 @@ import torch
 from tensordict import TensorDictBase
 
 from maniskill_torchrl._internal.assets import check_assets, no_asset_prompt
+from maniskill_torchrl._internal.host_gather import HostGather
 from maniskill_torchrl._internal.mp import entropy_seed
 from maniskill_torchrl._internal.rendering import default_render_backend, remember_render_device, render_device_errors
+from maniskill_torchrl._internal.sim import enable_physx_gpu
+from maniskill_torchrl._internal.sim_calls import ClosedEnv, InferenceModeEnv
 from maniskill_torchrl.engines.cpu_vector import CPUVectorEnv
 from maniskill_torchrl.envs import maniskill
 
 __all__ = ["ManiSkillWrapper", "ManiSkillEnv"]
+
+
+class _MissingActionError(KeyError):
+    """A KeyError whose message prints as written."""
+
+    def __str__(self) -> str:
+        return str(self.args[0])
 
 
 class ManiSkillWrapper(maniskill.ManiSkillWrapper):
@@ -41,9 +55,16 @@ class ManiSkillWrapper(maniskill.ManiSkillWrapper):
             :class:`~maniskill_torchrl.CPUVectorEnv`.
 
     Keyword Args:
-        see :class:`maniskill_torchrl.envs.maniskill.ManiSkillWrapper`. A ``CPUVectorEnv``'s
-        sub-envs run inference mode themselves and return fresh copies, whatever
-        ``inference_mode`` says.
+        inference_mode (bool, optional): call ManiSkill's ``step``, ``reset`` and ``render`` under
+            :func:`torch.inference_mode`: the same values for less CPU on the CPU sim; outputs are
+            then copied out as normal tensors, and your own calls into ``env.base_env`` must be
+            made in inference mode too. A ``CPUVectorEnv``'s sub-envs run it themselves and
+            return fresh copies, whatever this says. Defaults to ``False``.
+        device, batch_size, from_pixels, pixels_only, pixels_key, info_keys,
+        allow_done_after_reset: see :class:`maniskill_torchrl.envs.maniskill.ManiSkillWrapper`.
+            A CPU-sim env with ``device="cuda"`` moves each step's host outputs up in one
+            non-blocking transfer and takes its actions there. ``frame_skip`` is refused: use
+            :class:`~maniskill_torchrl.transforms.ActionRepeat`.
 
     On a ``CPUVectorEnv``, all sub-envs step together, so a ``"_step"`` mask is not honoured;
     :class:`~maniskill_torchrl.transforms.ActionRepeat` has the sub-envs repeat each action
@@ -61,24 +82,33 @@ class ManiSkillWrapper(maniskill.ManiSkillWrapper):
     """
 
     _workers: CPUVectorEnv | None = None
+    _gather: HostGather | None = None
 
-    _frame_skip_fix = (
-        "Use TransformedEnv(env, ActionRepeat(k)) from maniskill_torchrl.transforms, ManiSkill's "
-        "ActionRepeatWrapper semantics: rewards summed over the steps each env really took, its last "
-        "observation kept."
-    )
+    def __init__(self, env: Any = None, *, inference_mode: bool | None = False, **kwargs: Any) -> None:
+        frame_skip = kwargs.get("frame_skip", 1)
+        if frame_skip != 1:
+            # The adapter's frame skip stops every env at the first done one; ManiSkill's
+            # ActionRepeatWrapper repeats each env up to its own end.
+            raise ValueError(
+                f"frame_skip={frame_skip} is not supported: use TransformedEnv(env, ActionRepeat({frame_skip})) "
+                "from maniskill_torchrl.transforms, ManiSkill's ActionRepeatWrapper semantics: rewards summed over "
+                "the steps each env really took, its last observation kept."
+            )
+        self._inference = inference_mode  # None: ManiSkillEnv decides by the sim
+        super().__init__(env, **kwargs)
 
-    def _check_kwargs(self, kwargs: dict) -> None:
+    def _sim_layout(self, kwargs: dict) -> tuple[torch.device, int]:
         env = kwargs.get("env")
         if isinstance(env, CPUVectorEnv):
-            self._check_options(env)
-        else:
-            super()._check_kwargs(kwargs)
+            return torch.device("cpu"), env.num_envs
+        return super()._sim_layout(kwargs)
 
     def _build_env(self, env: Any, **kwargs: Any) -> Any:
         engine = env if isinstance(env, CPUVectorEnv) else None
         if engine is not None:
             self._inference = False  # the sub-envs run it, and only copies leave them
+        elif self._inference:
+            env = InferenceModeEnv(env)
         env = super()._build_env(env, **kwargs)
         self._workers = engine
         if engine is not None:
@@ -87,6 +117,31 @@ class ManiSkillWrapper(maniskill.ManiSkillWrapper):
         self._plain_repeat = engine.repeat if engine is not None else 1
         self._next_repeat = 0
         return env
+
+    @property
+    def info_entries(self) -> dict[str, str]:
+        """``{ManiSkill info key: tensordict key}`` of the declared info entries (a key that
+        collides with another entry is stored as ``"info_<key>"``)."""
+        return dict(self._info_map)
+
+    @property
+    def inference_mode(self) -> bool:
+        """Whether ManiSkill is called under :func:`torch.inference_mode`."""
+        return bool(self._inference)
+
+    def _set_device_rule(self, device: torch.device) -> None:
+        # Inference tensors are copied out into normal ones.
+        self._copies = self._copies or bool(self._inference)
+        super()._set_device_rule(device)
+        # The CPU sim feeding an accelerator: the step's host outputs go up in one transfer.
+        self._gather = HostGather(device) if self._moves and self._sim_device.type == "cpu" else None
+        if self._gather is not None:
+            self._obs_leaf = self._info_leaf = maniskill._unbatch if self._unbatched else None
+            self._flag_leaf = None
+
+    def _to_source(self, obs: Any, info: Any, **entries: Any) -> dict:
+        source = super()._to_source(obs, info, **entries)
+        return source if self._gather is None else self._gather(source)
 
     def _set_seed(self, seed: int | None) -> None:
         # The sub-envs' processes fork from one: without a seed, ManiSkill's unseeded resets would
@@ -112,16 +167,23 @@ class ManiSkillWrapper(maniskill.ManiSkillWrapper):
         registered = REGISTERED_ENVS.get(self._workers.spec.id)
         return None if registered is None else registered.max_episode_steps
 
-    def _frame_shape(self, base: Any) -> tuple[int, ...]:
-        # The engine asks one sub-env: rendering every sub-env before a reset fails in ManiSkill.
-        if isinstance(base, CPUVectorEnv):
-            return base.render_frame_shape()
-        return super()._frame_shape(base)
-
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         if self._workers is not None:
             self._set_worker_repeat()
         return super()._step(tensordict)
+
+    def _sim_action(self, tensordict: TensorDictBase) -> Any:
+        try:
+            return super()._sim_action(tensordict)
+        except KeyError as err:
+            keys = ["action"] if "action" not in tensordict.keys() else self.action_keys
+            missing = next(k for k in keys if tensordict.get(k, None) is None)
+            entries = sorted(tensordict.keys(True, True), key=str)
+            raise _MissingActionError(
+                f"{type(self).__name__}.step() found no action at {missing!r} in the tensordict, whose entries are "
+                f"{entries}. Set the action entries {self.action_keys} (shapes from env.full_action_spec), e.g. "
+                "td = env.rand_action(td), or run a policy that writes them."
+            ) from err
 
     def _reset(
         self, tensordict: TensorDictBase | None = None, *, seed: int | None = None, **kwargs: Any
@@ -172,8 +234,22 @@ class ManiSkillWrapper(maniskill.ManiSkillWrapper):
         )
 
     def close(self, *, raise_if_closed: bool = True) -> None:
+        """Closes the ManiSkill env and drops this env's references to it: its scene and SAPIEN's
+        render engine are freed with the last one elsewhere. A closed env says so when used."""
+        env = self.__dict__.get("_env")
+        if env is not None and not isinstance(env, ClosedEnv):
+            self._env = ClosedEnv(f"{type(self).__name__}({self._env_name(env)})")
+            env.close()
         self._workers = None
         super().close(raise_if_closed=raise_if_closed)
+        kwargs = self.__dict__.get("_constructor_kwargs")
+        if isinstance(kwargs, dict):
+            kwargs.pop("env", None)
+
+    def __repr__(self) -> str:
+        if isinstance(self._env, ClosedEnv):
+            return f"{self._env.name} (closed)"
+        return super().__repr__()
 
 
 class ManiSkillEnv(maniskill.ManiSkillEnv, ManiSkillWrapper):
@@ -194,8 +270,11 @@ class ManiSkillEnv(maniskill.ManiSkillEnv, ManiSkillWrapper):
             Defaults to None: decided by the machine
             (:func:`~maniskill_torchrl.engines.cpu_vector.in_process_default`: in this process
             unless it may use more cores than there are sub-envs).
-        device, batch_size, from_pixels, pixels_only, pixels_key, info_keys, inference_mode,
-        num_workers, allow_done_after_reset, **kwargs: as in
+        inference_mode (bool, optional): see :class:`ManiSkillWrapper`. Defaults to ``True`` on
+            the CPU sim (this class owns the ManiSkill env, so nothing else calls into it) and
+            ``False`` on the GPU sim.
+        device, batch_size, from_pixels, pixels_only, pixels_key, info_keys, num_workers,
+        allow_done_after_reset, **kwargs: as in
             :class:`maniskill_torchrl.envs.maniskill.ManiSkillEnv`. ``render_backend``: SAPIEN
             renders on one device per process while any env that renders lives: asking for
             another raises a :class:`~maniskill_torchrl.RenderDeviceError` naming both and the
@@ -211,23 +290,41 @@ class ManiSkillEnv(maniskill.ManiSkillEnv, ManiSkillWrapper):
         torch.Size([1, 1])
     """
 
-    def __init__(self, env_name: str, *, num_envs: int = 1, in_process: bool | None = None, **kwargs: Any) -> None:
+    def __init__(
+        self,
+        env_name: str,
+        *,
+        num_envs: int = 1,
+        in_process: bool | None = None,
+        inference_mode: bool | None = None,
+        **kwargs: Any,
+    ) -> None:
         self._in_process = in_process
-        super().__init__(env_name, num_envs=num_envs, **kwargs)
+        super().__init__(env_name, num_envs=num_envs, inference_mode=inference_mode, **kwargs)
 
     def _check_kwargs(self, kwargs: dict) -> None:
         super()._check_kwargs(kwargs)
-        env_name = kwargs["env_name"]
         # Before any process or sim starts.
         maniskill_kwargs = {k: v for k, v in kwargs.items() if k not in ("env_name", "num_envs")}
-        check_assets(env_name, maniskill_kwargs)
+        check_assets(kwargs["env_name"], maniskill_kwargs)
 
     def _build_env(self, env_name: str, num_envs: int = 1, **kwargs: Any) -> Any:
-        if num_envs > 1 and self._on_cpu_sim(num_envs, kwargs):
+        on_cpu = self._sim_device.type == "cpu"
+        if self._inference is None:
+            self._inference = on_cpu
+        if num_envs > 1 and on_cpu:
             # The CPU sim holds one env per process: one process per env.
             kwargs["sim_backend"] = "physx_cpu"
             engine = CPUVectorEnv(env_name, num_envs, in_process=self._in_process, **kwargs)
-            return self._wrap_built(engine, on_cpu=True)
+            wrapper = super(maniskill.ManiSkillEnv, self)
+            try:
+                wrapper._check_kwargs({"env": engine})
+                return wrapper._build_env(engine)
+            except Exception:
+                engine.close()
+                raise
+        if not on_cpu:
+            enable_physx_gpu()
         kwargs = default_render_backend(kwargs)
         with no_asset_prompt(env_name), render_device_errors(env_name, kwargs.get("render_backend")):
             env = super()._build_env(env_name, num_envs, **kwargs)

@@ -14,7 +14,6 @@ or what must reach another device (a CPU-sim env feeding a GPU policy).
 
 from __future__ import annotations
 
-import contextlib
 import importlib.util
 import warnings
 from collections.abc import Callable, Mapping, Sequence
@@ -22,7 +21,7 @@ from typing import Any
 
 import numpy as np
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import NestedKey, TensorDict, TensorDictBase
 from torchrl.data.tensor_specs import (
     Bounded,
     Categorical,
@@ -31,7 +30,7 @@ from torchrl.data.tensor_specs import (
     TensorSpec,
     Unbounded,
 )
-from torchrl.data.utils import DEVICE_TYPING
+from torchrl.data.utils import DEVICE_TYPING, numpy_to_torch_dtype_dict
 from torchrl.envs.common import _EnvPostInit, _EnvWrapper
 from torchrl.envs.utils import _classproperty
 
@@ -44,7 +43,6 @@ _DEVICE_ALIASES = {"physx_cpu": "cpu", "physx_cuda": "cuda", "gpu": "cuda"}
 _CPU_BACKENDS = ("cpu", "physx_cpu")
 # Top-level keys an info entry must not take: it is stored as "info_<key>" instead.
 _RESERVED_KEYS = frozenset({"reward", "done", "terminated", "truncated", "action"})
-_ALIGN = 16
 
 
 def _canonical_device(device: Any) -> torch.device:
@@ -126,38 +124,19 @@ def _render_frame_shape(base: Any) -> tuple[int, ...]:
     return tuple(base.render().shape[-3:])
 
 
-def _enable_physx_gpu() -> None:
-    """Loads SAPIEN's PhysX GPU library.
+def _cpu_sim(num_envs: int, sim_backend: Any) -> bool:
+    """Whether ``gym.make`` gives the CPU sim.
 
-    SAPIEN downloads it on first use: offline, the error says what to do.
+    ManiSkill's ``"auto"`` is the CPU sim for one env, and for more the GPU sim where
+    there is CUDA.
     """
-    import zipfile
-    from pathlib import Path
-
-    import sapien.physx as physx
-
-    if physx.is_gpu_enabled():
-        return
-    try:
-        physx.enable_gpu()
-    except (OSError, zipfile.BadZipFile) as err:
-        folder = Path.home() / ".sapien" / "physx" / physx.version()
-        raise RuntimeError(
-            "The GPU sim needs SAPIEN's PhysX GPU library (libPhysXGpu_64.so in "
-            f"{folder}), which SAPIEN downloads on first use from its "
-            f"physx-precompiled GitHub release {physx.version()}; that failed: "
-            f"{type(err).__name__}: {err}. Offline, copy that folder from a machine "
-            "where the GPU sim has run once, or use sim_backend='cpu'."
-        ) from err
+    backend = str(sim_backend).lower()
+    if backend == "auto":
+        return num_envs == 1 or not torch.cuda.is_available()
+    return backend in _CPU_BACKENDS
 
 
 # --------------------------------------------------------------------------- specs
-def _torch_dtype(dtype: Any) -> torch.dtype:
-    if isinstance(dtype, torch.dtype):
-        return dtype
-    return torch.from_numpy(np.zeros((), dtype=dtype)).dtype
-
-
 def _bool_spec(shape: torch.Size, device: torch.device) -> TensorSpec:
     return Categorical(n=2, shape=shape, dtype=torch.bool, device=device)
 
@@ -165,7 +144,11 @@ def _bool_spec(shape: torch.Size, device: torch.device) -> TensorSpec:
 def _space_to_spec(
     space: Any, batch_size: torch.Size, device: torch.device
 ) -> TensorSpec:
-    """One (unbatched) gymnasium space as a spec batched by ``batch_size``."""
+    """One (unbatched) gymnasium space as a spec batched by ``batch_size``.
+
+    Not ``torchrl.envs.libs.gym._gym_to_torchrl_spec_transform``: ManiSkill's scalar
+    Boxes (``is_grasped``) are ``[B]`` entries, which it declares ``[B, 1]``.
+    """
     import gymnasium as gym
 
     if isinstance(space, gym.spaces.Dict):
@@ -176,7 +159,7 @@ def _space_to_spec(
         )
     if isinstance(space, gym.spaces.Box):
         shape = batch_size + torch.Size(space.shape)
-        dtype = _torch_dtype(space.dtype)
+        dtype = numpy_to_torch_dtype_dict[np.dtype(space.dtype)]
         if dtype == torch.bool:
             return _bool_spec(shape, device)
         low, high = np.asarray(space.low), np.asarray(space.high)
@@ -260,153 +243,6 @@ class _ResetSeeds:
         return int(self._rng.randint(2**31))
 
 
-class _HostGather:
-    """Moves the tensors of a nested dict onto ``device`` with one host-to-device copy.
-
-    Host tensors are written into one reused host buffer (pinned on CUDA), which is
-    copied whole, without blocking; the device leaves are views of that fresh copy,
-    so nothing handed out is written again. ``TensorDict.to`` would copy leaf by
-    leaf, and its consolidated form allocates a host buffer per call. Tensors
-    already on an accelerator (``sapien_cuda`` pictures) are copied on the device.
-    Two buffers are taken in turn, each behind an event, so that a copy still
-    reading one is never overwritten. The layout is learnt from the first calls and
-    grows when new leaves appear.
-    """
-
-    def __init__(self, device: torch.device) -> None:
-        self.device = torch.device(device)
-        self._pin = self.device.type == "cuda"
-        module = (
-            torch.get_device_module(self.device) if self.device.type != "cpu" else None
-        )
-        self._event_type = getattr(module, "Event", None)
-        # path -> (dtype, shape, stride, offset in elements of dtype)
-        self._slots: dict[tuple, tuple[torch.dtype, torch.Size, tuple, int]] = {}
-        self._dtypes: tuple[torch.dtype, ...] = ()
-        self._buffers: list[tuple[torch.Tensor, dict, Any]] = []
-        self._turn = 0
-        self._pairs: list[tuple[torch.Tensor, torch.Tensor]] = []
-
-    def __call__(self, source: Mapping) -> dict:
-        pending: list[tuple[dict, Any, tuple, torch.Tensor]] = []
-        out = self._walk(source, (), pending)
-        if not pending:
-            return out
-        for _, _, path, value in pending:
-            slot = self._slots.get(path)
-            if slot is None or slot[0] != value.dtype or slot[1] != value.shape:
-                self._grow(pending)
-                break
-        slots = self._slots
-        buf, views, event = self._buffers[self._turn]
-        self._turn ^= 1
-        if event is not None:
-            event.synchronize()  # the copy out of this buffer two calls ago
-        for _, _, path, value in pending:
-            views[path].copy_(value)
-        moved = buf.to(self.device, non_blocking=self._pin, copy=True)
-        if event is not None:
-            event.record()
-        typed = {dtype: moved.view(dtype) for dtype in self._dtypes}
-        pairs = []
-        for container, key, path, _ in pending:
-            dtype, shape, stride, offset = slots[path]
-            container[key] = leaf = typed[dtype].as_strided(shape, stride, offset)
-            pairs.append((leaf, views[path]))
-        self._pairs = pairs
-        return out
-
-    def host_value(self, tensor: torch.Tensor) -> torch.Tensor | None:
-        """The host values of ``tensor``, a leaf of the last call, else None."""
-        for leaf, host in self._pairs:
-            if leaf is tensor:
-                return host
-        return None
-
-    def _walk(self, source: Mapping, prefix: tuple, pending: list) -> dict:
-        out = {}
-        for key, value in source.items():
-            if isinstance(value, torch.Tensor):
-                if value.device.type == "cpu":
-                    out[key] = None
-                    pending.append((out, key, (*prefix, key), value))
-                else:
-                    out[key] = value.to(self.device, copy=True)
-            elif isinstance(value, Mapping):
-                out[key] = self._walk(value, (*prefix, key), pending)
-            else:
-                out[key] = value
-        return out
-
-    def _grow(self, pending: list) -> None:
-        for _, _, event in self._buffers:
-            if event is not None:
-                event.synchronize()  # a copy may still read the old buffers
-        leaves = {path: (d, s) for path, (d, s, _, _) in self._slots.items()}
-        leaves.update({path: (v.dtype, v.shape) for _, _, path, v in pending})
-        # Widest dtypes first: every leaf starts at a multiple of its element size.
-        slots, offset = {}, 0
-        for path in sorted(leaves, key=lambda p: -leaves[p][0].itemsize):
-            dtype, shape = leaves[path]
-            stride = _contiguous_strides(shape)
-            slots[path] = (dtype, shape, stride, offset // dtype.itemsize)
-            offset += shape.numel() * dtype.itemsize
-        self._slots = slots
-        self._dtypes = tuple(dict.fromkeys(d for d, _ in leaves.values()))
-        size = max(-(-offset // _ALIGN) * _ALIGN, _ALIGN)
-        self._buffers = []
-        for _ in range(2):
-            buf = torch.empty(size, dtype=torch.uint8, pin_memory=self._pin)
-            typed = {d: buf.view(d) for d in self._dtypes}
-            views = {
-                path: typed[d].as_strided(shape, stride, off)
-                for path, (d, shape, stride, off) in slots.items()
-            }
-            event = self._event_type() if self._event_type is not None else None
-            self._buffers.append((buf, views, event))
-        self._turn = 0
-
-
-def _contiguous_strides(shape: torch.Size) -> tuple[int, ...]:
-    strides, step = [], 1
-    for n in reversed(shape):
-        strides.append(step)
-        step *= max(n, 1)
-    return tuple(reversed(strides))
-
-
-class _MissingActionError(KeyError):
-    """A KeyError whose message prints as written."""
-
-    def __str__(self) -> str:
-        return str(self.args[0])
-
-
-class _ClosedEnv:
-    """Takes the ManiSkill env's place after ``close()``.
-
-    A closed ManiSkill sim fails with unrelated AttributeErrors; this says it is closed.
-    """
-
-    def __init__(self, name: str) -> None:
-        self.name = name
-
-    def _closed(self, *args: Any, **kwargs: Any) -> Any:
-        raise RuntimeError(
-            f"{self.name} is closed: it cannot step, reset or render any more. "
-            "Make a new env instead of reusing a closed one."
-        )
-
-    step = reset = render = _closed
-
-    @property
-    def unwrapped(self) -> Any:
-        return self._closed()
-
-    def close(self) -> None:
-        return None
-
-
 def _mapped(obs: Mapping[str, Any], leaf: Callable) -> dict:
     """A nested observation dict with ``leaf`` applied to every tensor."""
     return {
@@ -470,8 +306,7 @@ class ManiSkillWrapper(_EnvWrapper):
     Every output is on ``env.device``, which defaults to the sim's device. Where
     ManiSkill hands out buffers that it writes into later (the GPU sim, and the CPU
     sim rendering with ``sapien_cuda``), outputs are copied once; elsewhere they are
-    ManiSkill's own tensors. A CPU-sim env with ``device="cuda"`` moves each step's
-    host outputs up in one non-blocking transfer and takes its actions there.
+    ManiSkill's own tensors.
 
     Partial resets (a ``"_reset"`` mask) reset the masked envs only, through
     ManiSkill's ``options={"env_idx": ...}``, unseeded as ManiSkill does. After
@@ -481,6 +316,8 @@ class ManiSkillWrapper(_EnvWrapper):
     scene_state=state)`` (or :meth:`reset_to_state`) restores it, as Isaac Lab's
     wrapper does.
 
+    ``frame_skip=k`` steps each action up to ``k`` times, sums the rewards and stops
+    as soon as any env is done, as :class:`~torchrl.envs.GymLikeEnv` does.
     Auto-resetting envs (``ManiSkillVectorEnv(auto_reset=True)``, gymnasium's
     ``Autoreset``) are refused: TorchRL resets done envs itself.
 
@@ -504,27 +341,33 @@ class ManiSkillWrapper(_EnvWrapper):
             ``"pixels"``.
         info_keys (list of str, optional): the info entries to keep. Defaults to
             every tensor entry of ``get_info()``.
-        inference_mode (bool, optional): call ManiSkill's ``step``, ``reset`` and
-            ``render`` under :func:`torch.inference_mode`: the same values for less
-            CPU on the CPU sim; outputs are then copied out as normal tensors, and
-            your own calls into ``env.base_env`` must be made in inference mode
-            too. Defaults to ``False``.
+        frame_skip (int, optional): see above. Defaults to ``1``.
         allow_done_after_reset (bool, optional): passed to
             :class:`~torchrl.envs.EnvBase`. Defaults to ``False``.
 
     Examples:
         >>> import gymnasium as gym
-        >>> import mani_skill.envs  # registers the tasks
+        >>> import mani_skill.envs  # doctest: +SKIP
         >>> from torchrl.envs import ManiSkillWrapper
-        >>> env = ManiSkillWrapper(gym.make("PickCube-v1", obs_mode="state"))
-        >>> _ = env.set_seed(0)
-        >>> td = env.rollout(3)
-        >>> td["next", "observation"].shape, td["next", "success"].shape
-        (torch.Size([1, 3, 42]), torch.Size([1, 3]))
+        >>> base = gym.make("PickCube-v1", obs_mode="state")  # doctest: +SKIP
+        >>> env = ManiSkillWrapper(base)  # doctest: +SKIP
+        >>> _ = env.set_seed(0)  # doctest: +SKIP
+        >>> td = env.rollout(3)  # doctest: +SKIP
+        >>> td["next", "observation"].shape  # doctest: +SKIP
+        torch.Size([1, 3, 42])
+        >>> td["next", "success"].shape  # doctest: +SKIP
+        torch.Size([1, 3])
+
+    .. seealso:: :class:`ManiSkillEnv`, and ``ManiSkillEnvConfig`` for Hydra.
     """
 
     git_url = "https://github.com/haosulab/ManiSkill"
     libname = "mani_skill"
+    # _step loops over wrapper_frame_skip itself (GymLikeEnv's convention).
+    _has_frame_skip = True
+    # ``env.reset(td, set_state=True, scene_state=...)``: TorchRL's deterministic
+    # reset, with the snapshot passed as Isaac Lab's wrapper takes it.
+    _supports_set_state = True
 
     _lib = None
 
@@ -554,9 +397,8 @@ class ManiSkillWrapper(_EnvWrapper):
         batch_size: Sequence[int] | None = None,
         from_pixels: bool = False,
         pixels_only: bool = False,
-        pixels_key: str | tuple[str, ...] = "pixels",
+        pixels_key: NestedKey = "pixels",
         info_keys: list[str] | None = None,
-        inference_mode: bool = False,
         allow_done_after_reset: bool = False,
         **kwargs: Any,
     ) -> None:
@@ -565,23 +407,29 @@ class ManiSkillWrapper(_EnvWrapper):
                 "mani_skill python package was not found. Install it with: "
                 "pip install mani_skill"
             )
+        if pixels_only and not from_pixels:
+            raise ValueError("pixels_only=True needs from_pixels=True.")
         if env is not None:
             kwargs["env"] = env
-        # Resolved against the sim's device and num_envs in _build_env: EnvBase
-        # would fail on a "cuda" device without CUDA before any check could run.
-        self._asked_device = device
-        self._asked_batch_size = batch_size
         self._from_pixels = bool(from_pixels)
         self._pixels_only = bool(pixels_only)
         self._pixels_key = pixels_key
         self._info_keys_asked = info_keys
-        self._inference = bool(inference_mode)
         self._seeds = _ResetSeeds()
         self._state_row: TensorDictBase | None = None
-        super().__init__(allow_done_after_reset=allow_done_after_reset, **kwargs)
+        self._sim_device, num_envs = self._sim_layout(kwargs)
+        super().__init__(
+            device=self._checked_device(device),
+            batch_size=self._checked_batch_size(batch_size, num_envs),
+            allow_done_after_reset=allow_done_after_reset,
+            **kwargs,
+        )
 
     # --------------------------------------------------------------- build
-    def _check_kwargs(self, kwargs: dict) -> None:
+    def _sim_layout(self, kwargs: dict) -> tuple[torch.device, int]:
+        """The sim's device and ``num_envs``, read before anything is built."""
+        from mani_skill.envs.sapien_env import BaseEnv
+
         env = kwargs.get("env")
         if env is None:
             raise TypeError(
@@ -589,83 +437,52 @@ class ManiSkillWrapper(_EnvWrapper):
                 "ManiSkillWrapper(gym.make('PickCube-v1')) or "
                 "ManiSkillEnv('PickCube-v1')."
             )
-        from mani_skill.envs.sapien_env import BaseEnv
-
-        if not isinstance(getattr(env, "unwrapped", None), BaseEnv):
+        base = getattr(env, "unwrapped", None)
+        if not isinstance(base, BaseEnv):
             raise TypeError(
                 "ManiSkillWrapper wraps ManiSkill 3 envs only, got "
-                f"{type(env).__name__} (unwrapped: "
-                f"{type(getattr(env, 'unwrapped', env)).__name__}). Make one "
+                f"{type(env).__name__} (unwrapped: {type(base).__name__}). Make one "
                 "with gym.make('<Task>-v1', ...) after `import mani_skill.envs`; for "
                 "other gym envs use torchrl.envs.GymWrapper."
             )
-        self._check_options(env)
-
-    # What to use instead of frame_skip, in its error.
-    _frame_skip_fix = (
-        "Use an action-repeat transform that stops at each env's end instead."
-    )
-
-    def _check_frame_skip(self) -> None:
-        if self.frame_skip != 1:
+        if self._from_pixels and base.render_mode != "rgb_array":
             raise ValueError(
-                f"frame_skip={self.frame_skip} is not supported: a frame skip keeps "
-                f"stepping an env after its episode ends. {self._frame_skip_fix}"
+                "from_pixels=True needs an env made with render_mode='rgb_array' "
+                f"(got render_mode={base.render_mode!r})."
             )
+        return _canonical_device(base.device), base.num_envs
 
-    def _check_options(self, env: Any) -> None:
-        """The checks of any env this class wraps: what TorchRL cannot serve."""
-        self._check_frame_skip()
+    def _check_kwargs(self, kwargs: dict) -> None:
+        """What TorchRL cannot serve in the env to wrap."""
+        env = kwargs["env"]
         resetter = _auto_resetting_wrapper(env)
         if resetter is not None:
             raise ValueError(
                 f"{resetter} resets done envs inside its step and returns the next "
                 "episode's first observation in place of the last one: TorchRL resets "
                 "done envs itself. Wrap the ManiSkill env without it (gym.make(...), "
-                "or "
-                "ManiSkillVectorEnv(env, auto_reset=False)), or use ManiSkillEnv(...)."
+                "or ManiSkillVectorEnv(env, auto_reset=False)), or use ManiSkillEnv."
             )
         base = env.unwrapped
         freq = getattr(base, "reconfiguration_freq", 0) or 0
-        if (
-            base.num_envs > 1
-            and freq
-            and not _maniskill_layer(env, "ignore_terminations")
-        ):
-            raise ValueError(
-                f"reconfiguration_freq={freq} with num_envs={base.num_envs}: ManiSkill "
-                "cannot reconfigure some of its envs only, and TorchRL resets each "
-                "done env on its own. Make the env with reconfiguration_freq=0, or "
-                "wrap it in ManiSkillVectorEnv(env, auto_reset=False, "
-                "ignore_terminations=True) for "
-                "episodes that all end together at the time limit."
-            )
-        if self._pixels_only and not self._from_pixels:
-            raise ValueError("pixels_only=True needs from_pixels=True.")
-        if self._from_pixels and base.render_mode != "rgb_array":
-            raise ValueError(
-                "from_pixels=True needs an env made with render_mode='rgb_array' "
-                f"(got render_mode={base.render_mode!r})."
-            )
+        if base.num_envs > 1 and freq:
+            if not _maniskill_layer(env, "ignore_terminations"):
+                raise ValueError(
+                    f"reconfiguration_freq={freq} with num_envs={base.num_envs}: "
+                    "ManiSkill cannot reconfigure some of its envs only, and TorchRL "
+                    "resets each done env on its own. Make the env with "
+                    "reconfiguration_freq=0, or wrap it in ManiSkillVectorEnv(env, "
+                    "auto_reset=False, ignore_terminations=True) for episodes that "
+                    "all end together at the time limit."
+                )
 
     def _build_env(self, env: Any, **kwargs: Any) -> Any:
         if kwargs:
             raise TypeError(
                 f"Unexpected arguments for {type(self).__name__}: {sorted(kwargs)}"
             )
-        base = env.unwrapped
-        self._sim_device = _canonical_device(base.device)
-        self.device = self._checked_device(self._asked_device)
-        self.batch_size = self._checked_batch_size(
-            self._asked_batch_size, base.num_envs
-        )
         self._unbatched = not self.batch_size
-        # Outputs made under inference mode, or in buffers ManiSkill writes into
-        # later, are copied once; nothing else is.
-        self._copies = self._inference or _reuses_buffers(base)
-        self._sim_mode = (
-            torch.inference_mode if self._inference else contextlib.nullcontext
-        )
+        self._copies = _reuses_buffers(env.unwrapped)
         self._set_device_rule(self.device)
         return env
 
@@ -679,9 +496,8 @@ class ManiSkillWrapper(_EnvWrapper):
         if device.type == "cuda" and not torch.cuda.is_available():
             raise ValueError(
                 f"device={str(device)!r}, but torch.cuda.is_available() is False: "
-                "leave "
-                f"device out (the sim's device, {self._sim_device}) or install a CUDA "
-                "build of torch."
+                f"leave device out (the sim's device, {self._sim_device}) or install "
+                "a CUDA build of torch."
             )
         return device
 
@@ -714,14 +530,9 @@ class ManiSkillWrapper(_EnvWrapper):
         return bool(self._env.unwrapped.gpu_sim_enabled)
 
     @property
-    def inference_mode(self) -> bool:
-        """Whether ManiSkill is called under :func:`torch.inference_mode`."""
-        return self._inference
-
-    @property
-    def info_keys(self) -> dict[str, str]:
-        """``{ManiSkill info key: tensordict key}`` of the declared info entries."""
-        return dict(self._info_map)
+    def info_keys(self) -> list[str]:
+        """The ManiSkill info keys declared as entries (see ``info_keys`` above)."""
+        return [key for key, _ in self._info_map]
 
     # --------------------------------------------------------------- device rule
     def _set_device_rule(self, device: torch.device) -> None:
@@ -729,18 +540,10 @@ class ManiSkillWrapper(_EnvWrapper):
         unbatched = self._unbatched
         self._moves = device != self._sim_device
         self._copy_out = self._copies or self._moves
-        # The CPU sim feeding an accelerator: one transfer per step.
-        self._gather = (
-            _HostGather(device)
-            if self._moves and self._sim_device.type == "cpu"
-            else None
-        )
-        if self._gather is not None:
-            self._obs_leaf = self._info_leaf = _unbatch if unbatched else None
-        else:
-            self._obs_leaf = _leaf(device, unbatched, self._copy_out)
-            # Infos may alias ManiSkill's own tensors (elapsed_steps): always copied.
-            self._info_leaf = _leaf(device, unbatched, True)
+        self._obs_leaf = _leaf(device, unbatched, self._copy_out)
+        # Infos may alias ManiSkill's own tensors (elapsed_steps): always copied.
+        self._info_leaf = _leaf(device, unbatched, True)
+        self._flag_leaf = _leaf(device, False, self._copy_out)
 
     def to(self, device: DEVICE_TYPING) -> ManiSkillWrapper:
         """This env with its outputs on ``device`` from now on, as if built so."""
@@ -765,7 +568,7 @@ class ManiSkillWrapper(_EnvWrapper):
             obs_spec[self._pixels_key] = Bounded(
                 low=0,
                 high=255,
-                shape=batch + torch.Size(self._frame_shape(base)),
+                shape=batch + torch.Size(_render_frame_shape(base)),
                 dtype=torch.uint8,
                 device=device,
             )
@@ -805,10 +608,6 @@ class ManiSkillWrapper(_EnvWrapper):
         self.reward_spec = reward_spec
         self.full_done_spec = done_spec
 
-    def _frame_shape(self, base: Any) -> tuple[int, ...]:
-        """The ``(H, W, 3)`` of one env's ``render()`` frame, read before any reset."""
-        return _render_frame_shape(base)
-
     def _infos(self, base: Any) -> dict[str, Any]:
         # From get_info(): a probe step or reset would change later seeded resets.
         infos = base.get_info()
@@ -826,11 +625,13 @@ class ManiSkillWrapper(_EnvWrapper):
     # --------------------------------------------------------------- step, reset
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = self._sim_action(tensordict)
-        with self._sim_mode():
-            obs, reward, terminated, truncated, info = self._env.step(action)
-        return self._step_tensordict(
-            obs, reward, terminated, truncated, info, self.batch_size
-        )
+        obs, reward, terminated, truncated, info = self._env.step(action)
+        for _ in range(self.wrapper_frame_skip - 1):
+            if (terminated | truncated).any():
+                break
+            obs, r, terminated, truncated, info = self._env.step(action)
+            reward = reward + r
+        return self._step_tensordict(obs, reward, terminated, truncated, info)
 
     def _step_tensordict(
         self,
@@ -839,58 +640,35 @@ class ManiSkillWrapper(_EnvWrapper):
         terminated: torch.Tensor,
         truncated: torch.Tensor,
         info: Mapping[str, Any],
-        batch_size: torch.Size,
     ) -> TensorDictBase:
-        """The "next" entries of a step's outputs for ``batch_size`` envs."""
-        source = self._to_source(obs, info)
-        # float32 rewards for every task (some are bool or float64); with a gather
-        # everything stays on the host until its one transfer.
-        copy = self._copy_out and self._gather is None
-        if copy or reward.dtype != torch.float32:
-            reward = reward.to(self.device if copy else None, torch.float32, copy=copy)
-        if copy:
-            terminated = terminated.to(self.device, copy=True)
-            truncated = truncated.to(self.device, copy=True)
-        done = torch.logical_or(terminated, truncated)
-        # ManiSkill gives [B] tensors: unsqueeze is the cheapest way to [B, 1]; an
-        # unbatched env's [1] entries are ManiSkill's [1] tensors as they are.
-        if reward.ndim == terminated.ndim == truncated.ndim == 1:
-            if not self._unbatched:
-                reward, terminated = reward.unsqueeze(-1), terminated.unsqueeze(-1)
-                truncated, done = truncated.unsqueeze(-1), done.unsqueeze(-1)
-        else:
+        """The "next" entries of a step's outputs (the envs of ``reward``'s batch)."""
+        # float32 rewards for every task (some are bool or float64).
+        if reward.dtype != torch.float32:
+            reward = reward.to(torch.float32)
+        leaf = self._flag_leaf
+        if leaf is not None:
+            reward, terminated, truncated = (
+                leaf(reward),
+                leaf(terminated),
+                leaf(truncated),
+            )
+        done = terminated | truncated
+        # ManiSkill gives [B] tensors: [B, 1] entries. An unbatched env's [1] entries
+        # are ManiSkill's [1] tensors as they are.
+        batch_size = reward.shape[:1] if not self._unbatched else self.batch_size
+        if not self._unbatched:
             shape = batch_size + (1,)
             reward, terminated = reward.view(shape), terminated.view(shape)
             truncated, done = truncated.view(shape), done.view(shape)
-        source["reward"] = reward
-        source["terminated"] = terminated
-        source["truncated"] = truncated
-        source["done"] = done
-        return TensorDict._new_unsafe(
-            self._on_device(source), batch_size=batch_size, device=self.device
+        source = self._to_source(
+            obs,
+            info,
+            reward=reward,
+            terminated=terminated,
+            truncated=truncated,
+            done=done,
         )
-
-    def _reset_tensordict(
-        self, obs: Any, info: Mapping[str, Any], batch_size: torch.Size
-    ) -> TensorDictBase:
-        """The entries of a reset's outputs for ``batch_size`` envs."""
-        return TensorDict._new_unsafe(
-            self._on_device(self._to_source(obs, info)),
-            batch_size=batch_size,
-            device=self.device,
-        )
-
-    def _step_proc_data(self, next_tensordict_out: TensorDictBase) -> TensorDictBase:
-        # _step writes reward and the done entries with their spec shapes and
-        # dtypes: EnvBase's reshaping and done completion have nothing to do, and
-        # cost a measurable share of a CPU-sim step. There is no public switch.
-        if self.run_type_checks:
-            return super()._step_proc_data(next_tensordict_out)
-        return next_tensordict_out
-
-    # ``env.reset(td, set_state=True, scene_state=...)``: TorchRL's deterministic
-    # reset, with the snapshot passed as Isaac Lab's wrapper takes it.
-    _supports_set_state = True
+        return TensorDict._new_unsafe(source, batch_size=batch_size, device=self.device)
 
     def _reset(
         self,
@@ -934,15 +712,17 @@ class ManiSkillWrapper(_EnvWrapper):
             if seed is not None:
                 self._seeds.set(seed)
             seed = self._seeds.draw()
-        with self._sim_mode():
-            obs, info = self._env.reset(seed=seed, options=options)
-        return self._reset_tensordict(obs, info, self.batch_size)
+        obs, info = self._env.reset(seed=seed, options=options)
+        return TensorDict._new_unsafe(
+            self._to_source(obs, info), batch_size=self.batch_size, device=self.device
+        )
 
     def _set_seed(self, seed: int | None) -> None:
         self._seeds.set(seed)
 
     # --------------------------------------------------------------- entries
-    def _to_source(self, obs: Any, info: Mapping[str, Any]) -> dict:
+    def _to_source(self, obs: Any, info: Mapping[str, Any], **entries: Any) -> dict:
+        """The entries of a reset or step on ``env.device``, as a nested dict."""
         leaf = self._obs_leaf
         if self._pixels_only:
             source = {}
@@ -950,28 +730,25 @@ class ManiSkillWrapper(_EnvWrapper):
             source = dict(obs) if leaf is None else _mapped(obs, leaf)
         else:
             source = {"observation": obs if leaf is None else leaf(obs)}
-        leaf = self._info_leaf
-        if leaf is None:
-            for key, td_key in self._info_map:
-                source[td_key] = info[key]
-        else:
-            for key, td_key in self._info_map:
-                source[td_key] = leaf(info[key])
+        info_leaf = self._info_leaf
+        for key, td_key in self._info_map:
+            value = info[key]
+            source[td_key] = value if info_leaf is None else info_leaf(value)
         if self._from_pixels:
-            frame = self._render_batched()
-            frame = frame[0] if self._unbatched else frame
-            if isinstance(self._pixels_key, tuple):
-                *path, last = self._pixels_key
-                node = source
-                for k in path:
-                    node = node.setdefault(k, {})
-                node[last] = frame
-            else:
-                source[self._pixels_key] = frame
+            frame = torch.as_tensor(self._env.render())
+            frame = frame.unsqueeze(0) if frame.ndim == 3 else frame
+            frame = frame if leaf is None else leaf(frame)
+            *path, last = (
+                self._pixels_key
+                if isinstance(self._pixels_key, tuple)
+                else (self._pixels_key,)
+            )
+            node = source
+            for k in path:
+                node = node.setdefault(k, {})
+            node[last] = frame
+        source.update(entries)
         return source
-
-    def _on_device(self, source: dict) -> dict:
-        return source if self._gather is None else self._gather(source)
 
     def render(self, *args: Any, **kwargs: Any) -> Any:
         """Renders the env on ``env.device``.
@@ -979,66 +756,35 @@ class ManiSkillWrapper(_EnvWrapper):
         ManiSkill's frames (``[B, H, W, 3]`` uint8 for ``rgb_array``), copied where
         ManiSkill renders into a reused buffer.
         """
-        with self._sim_mode():
-            frame = self._env.render(*args, **kwargs)
+        frame = self._env.render(*args, **kwargs)
         if self._copy_out and isinstance(frame, torch.Tensor):
             frame = frame.to(self.device, copy=True)
         return frame
 
-    def _render_batched(self) -> torch.Tensor:
-        if self._gather is None:
-            frame = torch.as_tensor(self.render(), device=self.device)
-        else:  # moved up with the step's other host outputs
-            with self._sim_mode():
-                frame = torch.as_tensor(self._env.render())
-        return frame.unsqueeze(0) if frame.ndim == 3 else frame
-
     def _sim_action(self, tensordict: TensorDictBase) -> Any:
-        """Returns the step's action as ManiSkill takes it.
-
-        Raises an error that says what is missing or misshaped.
-        """
-        action = tensordict.get("action", None)
-        if action is None:
-            raise self._action_error(tensordict, "action", None)
+        """Returns the step's action as ManiSkill takes it, its shape checked."""
+        action = tensordict["action"]  # a KeyError names the entries there are
         if self._action_names is None:
             if action.shape != self._action_shapes:
-                raise self._action_error(tensordict, "action", action)
+                raise ValueError(
+                    f"ManiSkill action of shape {tuple(action.shape)}, expected "
+                    f"{tuple(self._action_shapes)} ([*env.batch_size, "
+                    "*single_action_space.shape])."
+                )
             if self._unbatched:
                 action = action.unsqueeze(0)
             return action.to(self._sim_device) if self._moves else action
-        action = {k: action.get(k, None) for k in self._action_names}
-        for k, a in action.items():
-            if a is None or a.shape != self._action_shapes[k]:
-                raise self._action_error(tensordict, ("action", k), a)
-        if self._unbatched:
-            action = {k: a.unsqueeze(0) for k, a in action.items()}
-        if self._moves:
-            action = {k: a.to(self._sim_device) for k, a in action.items()}
-        return action
-
-    def _action_error(
-        self, tensordict: TensorDictBase, key: str | tuple, action: Any
-    ) -> Exception:
-        if action is None:
-            keys = sorted(tensordict.keys(True, True), key=str)
-            return _MissingActionError(
-                f"{type(self).__name__}.step() found no action at {key!r} in the "
-                f"tensordict, whose entries are {keys}. Set the action entries "
-                f"{self.action_keys} (shapes from env.full_action_spec), e.g. "
-                "td = env.rand_action(td), or run a policy that writes them."
-            )
-        if isinstance(key, tuple):
-            expected = self._action_shapes[key[1]]
-            return ValueError(
-                f"ManiSkill action {key[1]!r} of shape {tuple(action.shape)}, "
-                f"expected {tuple(expected)}."
-            )
-        return ValueError(
-            f"ManiSkill action of shape {tuple(action.shape)}, expected "
-            f"{tuple(self._action_shapes)} ([*env.batch_size, "
-            "*single_action_space.shape])."
-        )
+        out = {}
+        for k in self._action_names:
+            a = action[k]
+            if a.shape != self._action_shapes[k]:
+                raise ValueError(
+                    f"ManiSkill action {k!r} of shape {tuple(a.shape)}, expected "
+                    f"{tuple(self._action_shapes[k])}."
+                )
+            a = a.unsqueeze(0) if self._unbatched else a
+            out[k] = a.to(self._sim_device) if self._moves else a
+        return out
 
     # --------------------------------------------------------------- saved states
     def get_state(self) -> TensorDictBase:
@@ -1050,16 +796,16 @@ class ManiSkillWrapper(_EnvWrapper):
 
         Examples:
             >>> from torchrl.envs import ManiSkillEnv
-            >>> env = ManiSkillEnv("PickCube-v1", obs_mode="state")
-            >>> start = env.reset(seed=1)
-            >>> state = env.get_state()
-            >>> _ = env.rollout(3)
-            >>> td = env.reset(set_state=True, scene_state=state)
-            >>> (td["observation"] == start["observation"]).all().item()
+            >>> env = ManiSkillEnv("PickCube-v1", obs_mode="state")  # doctest: +SKIP
+            >>> start = env.reset(seed=1)  # doctest: +SKIP
+            >>> state = env.get_state()  # doctest: +SKIP
+            >>> _ = env.rollout(3)  # doctest: +SKIP
+            >>> td = env.reset(set_state=True, scene_state=state)  # doctest: +SKIP
+            >>> obs = td["observation"]  # doctest: +SKIP
+            >>> (obs == start["observation"]).all().item()  # doctest: +SKIP
             True
         """
-        with self._sim_mode():
-            state = self.base_env.get_state_dict()
+        state = self.base_env.get_state_dict()
         state = TensorDict._new_unsafe(
             _tensor_tree(state, self.device),
             batch_size=torch.Size([self.base_env.num_envs]),
@@ -1089,10 +835,7 @@ class ManiSkillWrapper(_EnvWrapper):
         return self.reset(tensordict, set_state=True, scene_state=scene_state, **kwargs)
 
     def _checked_states(self, states: TensorDictBase | Mapping) -> TensorDictBase:
-        """Returns ``states`` as a ``[num_envs]`` TensorDict of the env's state layout.
-
-        Raises an error that names the entry that differs.
-        """
+        """``states`` as a ``[num_envs]`` TensorDict of the env's state layout."""
         if not isinstance(states, (TensorDictBase, Mapping)):
             raise TypeError(
                 "scene_state must be a TensorDict or a dict of tensors "
@@ -1102,33 +845,25 @@ class ManiSkillWrapper(_EnvWrapper):
             states = TensorDict(_tensor_tree(states), batch_size=[])
         if self._state_row is None:
             self.get_state()  # a read of the sim: learns the layout
-        row = self._state_row
+        row, num_envs = self._state_row, self.base_env.num_envs
         want, got = set(row.keys(True, True)), set(states.keys(True, True))
         if want != got:
-            missing = sorted(want - got, key=str)
-            extra = sorted(got - want, key=str)
             raise ValueError(
                 "scene_state does not have this env's layout (env.get_state()): "
-                + (f"missing {missing}" if missing else "")
-                + ("; " if missing and extra else "")
-                + (f"unknown {extra}" if extra else "")
-                + ". Pass a state saved from this task (env.get_state(), or a "
-                "trajectory file's env_states)."
+                f"missing {sorted(want - got, key=str)}, unknown "
+                f"{sorted(got - want, key=str)}. Pass a state saved from this task "
+                "(env.get_state(), or a trajectory file's env_states)."
             )
-        num_envs = self.base_env.num_envs
-        out, rows = {}, set()
+        out = TensorDict(batch_size=[num_envs])
         for key in sorted(want, key=str):
             ref, value = row.get(key), states.get(key)
-            if value.shape == ref.shape:
-                rows.add(None)
-            elif value.ndim == ref.ndim + 1 and value.shape[1:] == ref.shape:
-                rows.add(value.shape[0])
-            else:
-                per_env = ", ".join(map(str, ref.shape))
+            if value.shape == ref.shape:  # one env's state, for every env
+                value = value.expand(num_envs, *ref.shape)
+            elif value.shape != (num_envs, *ref.shape):
                 raise ValueError(
                     f"scene_state{_path(key)} has shape {list(value.shape)}; this "
-                    f"env's is {list(ref.shape)} per env: pass [{num_envs}, {per_env}] "
-                    f"(one row per env) or {list(ref.shape)} (one env's state)."
+                    f"env takes {[num_envs, *ref.shape]} (one row per env) or "
+                    f"{list(ref.shape)} (one env's state)."
                 )
             if value.dtype != ref.dtype and not (
                 value.is_floating_point() and ref.is_floating_point()
@@ -1137,49 +872,17 @@ class ManiSkillWrapper(_EnvWrapper):
                     f"scene_state{_path(key)} has dtype {value.dtype}; this env's "
                     f"is {ref.dtype}."
                 )
-            # A plain copy: memory-mapped rows cannot be sent to worker processes.
-            out[key] = value.as_subclass(torch.Tensor).to(ref.dtype, copy=True)
-        if len(rows) > 1:
-            raise ValueError(
-                "scene_state's entries have different batches: some have a batch "
-                "dim and some do not, or their batches differ."
-            )
-        (n_rows,) = rows
-        if n_rows is None:
-            out = {k: v.expand(num_envs, *v.shape) for k, v in out.items()}
-        elif n_rows != num_envs:
-            raise ValueError(
-                f"scene_state has a batch of {n_rows} and this env has {num_envs} "
-                "env(s): pass one row per env, or one env's state without a batch dim."
-            )
-        result = TensorDict(batch_size=[num_envs])
-        for key, value in out.items():
-            result.set(key, value)
-        return result
+            # A plain tensor: memory-mapped rows cannot be sent to worker processes.
+            out.set(key, value.as_subclass(torch.Tensor).to(ref.dtype, copy=True))
+        return out
 
     # --------------------------------------------------------------- misc
-    def close(self, *, raise_if_closed: bool = True) -> None:
-        """Closes the ManiSkill env and drops this env's reference to it.
-
-        Its scene and SAPIEN's render engine are freed with the last one elsewhere.
-        """
-        env = self.__dict__.get("_env")
-        if env is not None and not isinstance(env, _ClosedEnv):
-            self._env = _ClosedEnv(f"{type(self).__name__}({self._env_name(env)})")
-            env.close()
-        super().close(raise_if_closed=raise_if_closed)
-        kwargs = self.__dict__.get("_constructor_kwargs")
-        if isinstance(kwargs, dict):
-            kwargs.pop("env", None)
-
     @staticmethod
     def _env_name(env: Any) -> str:
         spec = getattr(env.unwrapped, "spec", None)
         return spec.id if spec is not None else type(env.unwrapped).__name__
 
     def __repr__(self) -> str:
-        if isinstance(self._env, _ClosedEnv):
-            return f"{self._env.name} (closed)"
         return (
             f"{type(self).__name__}(env={self._env_name(self._env)}, "
             f"num_envs={self._env.unwrapped.num_envs}, "
@@ -1219,58 +922,32 @@ class ManiSkillEnv(ManiSkillWrapper, metaclass=_ManiSkillEnvMeta):
         num_workers (int, optional): above 1, a :class:`~torchrl.envs.ParallelEnv`
             of ``num_workers`` such envs, one per process, is returned. Defaults to
             ``1``.
-        inference_mode (bool, optional): see :class:`ManiSkillWrapper`. Defaults to
-            ``True`` on the CPU sim (this class owns the ManiSkill env, so nothing
-            else calls into it) and ``False`` on the GPU sim.
         device, batch_size, from_pixels, pixels_only, pixels_key, info_keys,
-        allow_done_after_reset: see :class:`ManiSkillWrapper`. ``from_pixels=True``
-            sets ``render_mode="rgb_array"``.
+        frame_skip, allow_done_after_reset: see :class:`ManiSkillWrapper`.
+            ``from_pixels=True`` sets ``render_mode="rgb_array"``.
         **kwargs: passed to ``gym.make``: ``obs_mode``, ``control_mode``,
             ``sim_backend`` (``"auto"``, ``"cpu"``, ``"gpu"``), ``render_mode``,
             ``max_episode_steps``...
 
     Examples:
         >>> from torchrl.envs import ManiSkillEnv
-        >>> env = ManiSkillEnv("PickCube-v1", obs_mode="state_dict")
-        >>> env.observation_spec["agent", "qpos"].shape
+        >>> env = ManiSkillEnv("PickCube-v1", obs_mode="state_dict")  # doctest: +SKIP
+        >>> env.observation_spec["agent", "qpos"].shape  # doctest: +SKIP
         torch.Size([1, 9])
-        >>> td = env.rand_step(env.reset())
-        >>> td["next", "reward"].shape
+        >>> td = env.rand_step(env.reset())  # doctest: +SKIP
+        >>> td["next", "reward"].shape  # doctest: +SKIP
         torch.Size([1, 1])
+
+    .. seealso:: ``ManiSkillEnvConfig``, its Hydra config.
     """
 
-    def __init__(
-        self,
-        env_name: str,
-        *,
-        num_envs: int = 1,
-        inference_mode: bool | None = None,
-        **kwargs: Any,
-    ) -> None:
-        kwargs["env_name"] = env_name
-        kwargs["num_envs"] = num_envs
-        self._inference_asked = inference_mode
-        wrapper_args = {
-            k: kwargs.pop(k)
-            for k in (
-                "device",
-                "batch_size",
-                "from_pixels",
-                "pixels_only",
-                "pixels_key",
-                "info_keys",
-                "allow_done_after_reset",
-            )
-            if k in kwargs
-        }
-        if wrapper_args.get("from_pixels"):
+    def __init__(self, env_name: str, *, num_envs: int = 1, **kwargs: Any) -> None:
+        if kwargs.get("from_pixels") and kwargs.get("render_mode") is None:
             # An explicit None (a config's default) asks for no render mode either.
-            if kwargs.get("render_mode") is None:
-                kwargs["render_mode"] = "rgb_array"
-        super().__init__(**wrapper_args, **kwargs)
+            kwargs["render_mode"] = "rgb_array"
+        super().__init__(env_name=env_name, num_envs=num_envs, **kwargs)
 
-    def _check_kwargs(self, kwargs: dict) -> None:
-        self._check_frame_skip()
+    def _sim_layout(self, kwargs: dict) -> tuple[torch.device, int]:
         env_name, num_envs = kwargs["env_name"], kwargs["num_envs"]
         available = self.available_envs
         if env_name not in available:
@@ -1283,34 +960,29 @@ class ManiSkillEnv(ManiSkillWrapper, metaclass=_ManiSkillEnvMeta):
             )
         if not isinstance(num_envs, int) or isinstance(num_envs, bool) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive int, got {num_envs!r}.")
-        self._checked_batch_size(self._asked_batch_size, num_envs)
+        if self._from_pixels and kwargs.get("render_mode") != "rgb_array":
+            raise ValueError(
+                "from_pixels=True needs render_mode='rgb_array' "
+                f"(got render_mode={kwargs.get('render_mode')!r})."
+            )
+        if _cpu_sim(num_envs, kwargs.get("sim_backend", "auto")):
+            return torch.device("cpu"), num_envs
+        if not torch.cuda.is_available():
+            raise ValueError(
+                f"sim_backend={kwargs.get('sim_backend')!r} is ManiSkill's GPU sim, "
+                "which needs CUDA, and torch.cuda.is_available() is False: use "
+                "sim_backend='cpu' (or 'auto')."
+            )
+        return _canonical_device("cuda"), num_envs
 
-    def _on_cpu_sim(self, num_envs: int, kwargs: dict) -> bool:
-        """Whether ``gym.make`` gives the CPU sim.
-
-        ManiSkill's ``"auto"`` is the CPU sim for one env, and for more the GPU sim
-        where there is CUDA.
-        """
-        backend = str(kwargs.get("sim_backend", "auto")).lower()
-        if backend == "auto":
-            return num_envs == 1 or not torch.cuda.is_available()
-        return backend in _CPU_BACKENDS
+    def _check_kwargs(self, kwargs: dict) -> None:
+        return None  # _sim_layout checked them, before EnvBase was made
 
     def _build_env(self, env_name: str, num_envs: int = 1, **kwargs: Any) -> Any:
         import gymnasium as gym
         import mani_skill.envs  # noqa: F401
 
-        on_cpu = self._on_cpu_sim(num_envs, kwargs)
-        if not on_cpu:
-            if not torch.cuda.is_available():
-                raise ValueError(
-                    f"sim_backend={kwargs.get('sim_backend')!r} is ManiSkill's GPU "
-                    "sim, "
-                    "which needs CUDA, and torch.cuda.is_available() is False: use "
-                    "sim_backend='cpu' (or 'auto')."
-                )
-            _enable_physx_gpu()
-        elif num_envs > 1:
+        if num_envs > 1 and self._sim_device.type == "cpu":
             raise ValueError(
                 f"num_envs={num_envs} on ManiSkill's CPU sim, which holds one env per "
                 f"process: pass num_workers={num_envs} for a ParallelEnv of single "
@@ -1320,14 +992,8 @@ class ManiSkillEnv(ManiSkillWrapper, metaclass=_ManiSkillEnvMeta):
             # ManiSkill warns that it lowers float64 spaces' precision.
             warnings.filterwarnings("ignore", message=".*precision lowered.*")
             env = gym.make(env_name, num_envs=num_envs, **kwargs)
-        return self._wrap_built(env, on_cpu)
-
-    def _wrap_built(self, env: Any, on_cpu: bool) -> Any:
-        """The wrapper's checks and build, on a ManiSkill env this class made."""
-        inference = self._inference_asked
-        self._inference = on_cpu if inference is None else bool(inference)
         try:
-            self._check_options(env)
+            super()._check_kwargs({"env": env})
             return super()._build_env(env)
         except Exception:
             env.close()

@@ -8,8 +8,8 @@ from torchrl.data import Categorical, Composite, TensorSpec, Unbounded
 from torchrl.envs import EnvBase, Transform, TransformedEnv
 
 from maniskill_torchrl._internal.episode_stats import SUMMATIONS, EpisodeField, EpisodeStats, episode_fields
+from maniskill_torchrl._internal.host_gather import HostGather
 from maniskill_torchrl.envs.hooks import env_hooks
-from maniskill_torchrl.envs.maniskill import _HostGather
 
 __all__ = ["EpisodeMetrics"]
 
@@ -122,7 +122,7 @@ class EpisodeMetrics(Transform):
             has_success=has_success,
             has_fail=has_fail,
             summation=summation,
-            gather=_HostGather,  # the env's own one-transfer move, for sums made on the host
+            gather=HostGather,  # the env's own one-transfer move, for sums made on the host
         )
         self._reward_key = reward_keys[0]
         self._reset_keys = list(parent.reset_keys)

@@ -689,7 +689,7 @@ def test_physx_gpu_download_failure_says_what_to_do(monkeypatch):
     import requests
     import sapien.physx
 
-    from maniskill_torchrl.envs.maniskill import _enable_physx_gpu as enable_physx_gpu
+    from maniskill_torchrl._internal.sim import enable_physx_gpu
 
     def offline():
         raise requests.exceptions.ConnectionError("Failed to resolve 'github.com'")

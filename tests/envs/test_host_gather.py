@@ -1,4 +1,4 @@
-"""The adapter's host gather (``_HostGather``, ``maniskill_torchrl/envs/maniskill.py``) on its own:
+"""The host gather (``HostGather``, ``maniskill_torchrl/_internal/host_gather.py``) on its own:
 one copy of a step's host tensors, handed out as views that later calls never write into. Its CUDA
 side (pinned buffers, events) runs under the CUDA double in ``tests/gpu/cuda_device_cases.py``;
 here the target is the CPU."""
@@ -8,7 +8,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from maniskill_torchrl.envs.maniskill import _HostGather as HostGather
+from maniskill_torchrl._internal.host_gather import HostGather
 
 
 def _step(i: int) -> dict:

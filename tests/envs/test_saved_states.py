@@ -31,9 +31,13 @@ def pair():
 def test_a_state_of_another_batch_is_refused_and_the_env_goes_on(pair):
     batched, single = pair
     start = batched.reset(seed=3)
-    with pytest.raises(ValueError, match=r"scene_state has a batch of 1 and this env has 2 env\(s\)"):
+    with pytest.raises(
+        ValueError, match=r"scene_state\['actors'\]\['cube'\] has shape \[1, 13\]; this env takes \[2, 13\]"
+    ):
         batched.reset_to_state(single.get_state())  # a batch-[1] state: killed a worker before
-    with pytest.raises(ValueError, match=r"scene_state has a batch of 2 and this env has 1 env\(s\)"):
+    with pytest.raises(
+        ValueError, match=r"has shape \[2, 13\]; this env takes \[1, 13\] \(one row per env\) or \[13\]"
+    ):
         single.reset_to_state(batched.get_state())  # was accepted, row 0 used
     # the batched env is still usable, and resets to its own states
     state = batched.get_state()
@@ -56,7 +60,9 @@ def test_a_misshaped_or_mistyped_entry_is_named(pair):
     cube = state["actors", "cube"]
     bad = state.to_dict()
     bad["actors"]["cube"] = cube[:, :7]
-    with pytest.raises(ValueError, match=r"scene_state\['actors'\]\['cube'\] has shape \[1, 7\]; this env's is \[13\]"):
+    with pytest.raises(
+        ValueError, match=r"scene_state\['actors'\]\['cube'\] has shape \[1, 7\]; this env takes \[1, 13\]"
+    ):
         single.reset_to_state(bad)
     as_int = state.clone()
     as_int["actors", "cube"] = cube.to(torch.int64)
