@@ -172,6 +172,13 @@ class ManiSkillWrapper(maniskill.ManiSkillWrapper):
             self._set_worker_repeat()
         return super()._step(tensordict)
 
+    def _step_proc_data(self, next_tensordict_out: TensorDictBase) -> TensorDictBase:
+        # The adapter's step writes the reward and the done entries with their spec shapes and dtypes: EnvBase's
+        # reshaping and done completion have nothing to do (measured: RESULTS.md, "ManiSkillEnv").
+        if self.run_type_checks:
+            return super()._step_proc_data(next_tensordict_out)
+        return next_tensordict_out
+
     def _sim_action(self, tensordict: TensorDictBase) -> Any:
         try:
             return super()._sim_action(tensordict)

@@ -26,7 +26,6 @@ from torchrl.data.tensor_specs import (
     Bounded,
     Categorical,
     Composite,
-    MultiCategorical,
     TensorSpec,
     Unbounded,
 )
@@ -112,11 +111,7 @@ def _reuses_buffers(base: Any) -> bool:
 
 
 def _render_frame_shape(base: Any) -> tuple[int, ...]:
-    """Returns ``(H, W, 3)``, the shape of one env's ``render()`` frame.
-
-    It is read from the camera config when there is one camera; several are tiled,
-    and only a render tells the layout.
-    """
+    """``(H, W, 3)`` of one env's frame: from its one camera, else a render (tiled)."""
     configs = getattr(base, "_human_render_camera_configs", {}) or {}
     if len(configs) == 1:
         (cfg,) = configs.values()
@@ -172,20 +167,9 @@ def _space_to_spec(
                 device=device,
             )
         return Unbounded(shape=shape, dtype=dtype, device=device)
-    if isinstance(space, gym.spaces.Discrete):
-        return Categorical(
-            n=int(space.n), shape=batch_size, dtype=torch.int64, device=device
-        )
-    if isinstance(space, gym.spaces.MultiDiscrete):
-        return MultiCategorical(
-            nvec=torch.as_tensor(space.nvec),
-            shape=batch_size + torch.Size(space.shape),
-            dtype=torch.int64,
-            device=device,
-        )
     raise TypeError(
-        f"Cannot convert the gymnasium space {space!r} into a TorchRL spec: only "
-        "Box, Discrete, MultiDiscrete and Dict spaces are supported."
+        f"Cannot convert the gymnasium space {space!r} into a TorchRL spec: ManiSkill "
+        "tasks have Box and Dict spaces only."
     )
 
 
