@@ -21,7 +21,7 @@ import sys
 import pytest
 import torch
 import torchrl.envs.libs.maniskill as maniskill_lib
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 
 from torchrl.collectors import Collector
 from torchrl.envs import ParallelEnv
@@ -46,29 +46,16 @@ def _raw_env(env_id: str = _TASK, **kwargs):
     return gym.make(env_id, num_envs=1, **kwargs)
 
 
-def _leaves(tree, prefix=()):
-    for key, value in tree.items():
-        if isinstance(value, dict):
-            yield from _leaves(value, prefix + (key,))
-        elif isinstance(value, torch.Tensor):
-            yield prefix + (key,), value
-
-
 def _assert_obs_equal(td: TensorDictBase, obs, info=None, device=_CPU) -> None:
-    """``td`` holds ManiSkill's observation ``obs`` and the tensor entries of its
-    ``info``, bit for bit, on ``device``."""
-    obs = {"observation": obs} if isinstance(obs, torch.Tensor) else dict(obs)
+    """``td`` holds ManiSkill's ``obs`` and the batched tensors of its ``info``, bit
+    for bit, on ``device``."""
+    obs = {"observation": obs} if isinstance(obs, torch.Tensor) else obs
+    ref = TensorDict(obs, batch_size=[1])
     if info is not None:
         assert "success" in info and "elapsed_steps" in info
-        obs.update(
-            {
-                k: v
-                for k, v in info.items()
-                if isinstance(v, torch.Tensor) and v.shape[:1] == (1,)
-            }
-        )
-    for key, value in _leaves(obs):
-        assert td.get(key).device == device, key
+        batched = {k: v for k, v in info.items() if getattr(v, "shape", ())[:1] == (1,)}
+        ref.update(batched)
+    for key, value in ref.items(True, True):
         torch.testing.assert_close(td.get(key), value.to(device), rtol=0, atol=0)
 
 
@@ -233,7 +220,8 @@ class TestManiSkillState:
         raw.reset(seed=_SEED)
         state = env.get_state()
         assert state.batch_size == torch.Size([1])
-        for key, value in _leaves(raw.unwrapped.get_state_dict()):
+        raw_state = TensorDict(raw.unwrapped.get_state_dict(), batch_size=[1])
+        for key, value in raw_state.items(True, True):
             torch.testing.assert_close(state.get(key), value, rtol=0, atol=0)
         torch.manual_seed(_SEED)
         # TorchRL's deterministic reset, the method, and one env's state (as a
