@@ -24,7 +24,7 @@ xdist        = $(if $(filter-out 0 1,$(WORKERS)),-n $(WORKERS) --dist $(1) --no-
 
 help:
 	@echo "Targets:"
-	@echo "  make setup   create .venv and install the package (+ test, demo, distributed, docs, maniskill extras); checks Vulkan"
+	@echo "  make setup   create .venv and install the package (+ test, demo, distributed, docs, hydra, maniskill extras); checks Vulkan"
 	@echo "  make test    run the test suite, in 2 processes (PYTEST_ARGS=... passed to pytest; WORKERS=1: serially)"
 	@echo "  make test-examples  the examples end to end, as users run them: the demo CLI, PPO, SAC, BC, evaluation (tests/examples, ~1.5 min)"
 	@echo "  make test-ray  TorchRL's Ray collectors over the library's envs, on a local Ray instance (tests/examples/test_ray.py, ~1 min)"

@@ -7,7 +7,7 @@
 # 2. Installs torch==2.14.1 (pinned: torchrl 0.14.1's C extension, which prioritized replay
 #    needs, is built against torch 2.14 and does not load on another torch; on Linux that is
 #    PyPI's CUDA build with its nvidia-* wheels, found in a local pip index where there is one)
-#    and `pip install -e ".[test,demo,distributed,docs,maniskill]"`
+#    and `pip install -e ".[test,demo,distributed,docs,hydra,maniskill]"`
 #    (the `maniskill` extra: the ManiSkill 3.0.x release) in one resolve, then
 #    writes the bytecode of what the library, its examples and its tests import (by importing it
 #    once; the make targets let Python write the rest's on first use).
@@ -47,7 +47,7 @@ TORCH_PIN="torch==2.14.1"
 # torchrl's C extension loads on this torch minor only (the pin above, or a user's own build of it).
 TORCH_ABI="2.14"
 # Both are part of the stamp (this script's hash): changing them reinstalls.
-EXTRAS="test,demo,distributed,docs"
+EXTRAS="test,demo,distributed,docs,hydra"
 NIGHTLY_SPEC="${MANISKILL_NIGHTLY_SPEC:-mani-skill-nightly>=2026.8,<2026.9}"
 # The installer (pinned: a new uv must not change what CI installs unseen).
 UV_PIN="uv==0.13.9"

@@ -32,6 +32,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import ast
 import difflib
 import sys
 from dataclasses import dataclass
@@ -65,41 +66,29 @@ class Edit:
     before: bool = True
 
 
-_CONFIG = '''@dataclass
-class ManiSkillEnvConfig(EnvLibsConfig):
-    """Configuration for ManiSkillEnv environment.
-
-    Hydra configuration for :class:`~torchrl.envs.ManiSkillEnv`. ``obs_mode``,
-    ``reward_mode``, ``control_mode``, ``render_mode``, ``sim_backend``,
-    ``render_backend`` and ``max_episode_steps`` are passed to ``gym.make``; their
-    defaults are ManiSkill's.
-    """
-
-    env_name: str = MISSING
-    num_envs: int = 1
-    obs_mode: str | None = None
-    reward_mode: str | None = None
-    control_mode: str | None = None
-    render_mode: str | None = None
-    sim_backend: str = "auto"
-    render_backend: str = "gpu"
-    max_episode_steps: int | None = None
-    from_pixels: bool = False
-    pixels_only: bool = False
-    pixels_key: str = "pixels"
-    info_keys: list[str] | None = None
-    device: str | None = None
-    batch_size: list[int] | None = None
-    allow_done_after_reset: bool = False
-    num_workers: int = 1
-    _target_: str = "torchrl.envs.libs.maniskill.ManiSkillEnv"
-
-    def __post_init__(self) -> None:
-        """Post-initialization hook for ManiSkillEnv configuration."""
-        super().__post_init__()
+CONFIG_SOURCE = ROOT / "maniskill_torchrl" / "configs.py"
+CONFIG_TARGET = "torchrl.envs.libs.maniskill.ManiSkillEnv"
 
 
-'''
+def _config_class() -> str:
+    """``ManiSkillEnvConfig``'s source in ``maniskill_torchrl/configs.py``, the one
+    class of both trees, with TorchRL's ``ManiSkillEnv`` as its ``_target_``."""
+    source = CONFIG_SOURCE.read_text()
+    tree = ast.parse(source)
+    (node,) = [
+        n
+        for n in tree.body
+        if isinstance(n, ast.ClassDef) and n.name == "ManiSkillEnvConfig"
+    ]
+    lines = source.splitlines(keepends=True)
+    text = "".join(lines[node.decorator_list[0].lineno - 1 : node.end_lineno])
+    target = '    _target_: str = "maniskill_torchrl.ManiSkillEnv"\n'
+    if text.count(target) != 1:
+        raise ApplyError(
+            f"{CONFIG_SOURCE}: ManiSkillEnvConfig has no line {target.strip()!r}"
+        )
+    return text.replace(target, f'    _target_: str = "{CONFIG_TARGET}"\n') + "\n\n"
+
 
 # The CI job, after mjlab's (a YAML block whose `if:` line is longer than 88 columns).
 _JOB = (HERE / "edits" / "unittests-maniskill.yml").read_text()
@@ -130,7 +119,7 @@ EDITS = [
     Edit(
         "torchrl/trainers/algorithms/configs/envs_libs.py",
         "class DMControlEnvConfig(",
-        _CONFIG,
+        _config_class(),
         # before the "@dataclass" line above the anchor: see _insert
     ),
     Edit(

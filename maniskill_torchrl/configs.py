@@ -1,0 +1,203 @@
+"""This library in TorchRL's config system (Hydra): ManiSkill is one more ``env=`` choice of
+TorchRL's trainers, its transforms more ``transform=`` choices, and its demonstrations one more
+replay buffer.
+
+``import maniskill_torchrl.configs`` (a ``train.py`` of the ``sota-implementations`` shape does
+``from maniskill_torchrl.configs import *`` beside TorchRL's own) registers, in TorchRL's
+``ConfigStore`` groups:
+
+=================  ======================  =========================================
+group              name                    node
+=================  ======================  =========================================
+``env``            ``maniskill``           :class:`ManiSkillEnvConfig`
+``transform``      ``action_repeat``       :class:`ActionRepeatConfig`
+``transform``      ``episode_metrics``     :class:`EpisodeMetricsConfig`
+``transform``      ``ignore_terminations`` :class:`IgnoreTerminationsConfig`
+``transform``      ``cpu_unbatch``         :class:`CPUUnbatchConfig`
+``replay_buffer``  ``maniskill``           :class:`ManiSkillExperienceReplayConfig`
+``replay_buffer``  ``offline_to_online``   :class:`OfflineToOnlineReplayBufferConfig`
+=================  ======================  =========================================
+
+and the ``maniskill:`` prefix of :func:`torchrl.data.datasets.load_dataset`. It needs
+``hydra-core`` (the ``hydra`` extra: ``pip install "maniskill-torchrl[hydra]"``).
+
+:class:`ManiSkillEnvConfig` is the class the TorchRL pull request in ``upstream/`` adds to
+``torchrl/trainers/algorithms/configs/envs_libs.py`` (``upstream/apply.py`` copies it from here),
+with its ``_target_`` there TorchRL's ``ManiSkillEnv`` and here this library's.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from dataclasses import dataclass
+from typing import Any
+
+if importlib.util.find_spec("hydra") is None:  # TorchRL's configs need it too
+    raise ImportError(
+        "maniskill_torchrl.configs needs hydra-core: pip install 'maniskill-torchrl[hydra]' (or hydra-core).",
+        name="hydra",
+    )
+
+from hydra.core.config_store import ConfigStore  # noqa: E402
+from omegaconf import MISSING  # noqa: E402
+from torchrl.trainers.algorithms.configs.data import ReplayBufferBaseConfig  # noqa: E402
+from torchrl.trainers.algorithms.configs.envs_libs import EnvLibsConfig  # noqa: E402
+from torchrl.trainers.algorithms.configs.transforms import TransformConfig  # noqa: E402
+
+import maniskill_torchrl.data  # noqa: E402, F401  (registers the maniskill: dataset prefix)
+
+__all__ = [
+    "ActionRepeatConfig",
+    "CPUUnbatchConfig",
+    "EpisodeMetricsConfig",
+    "IgnoreTerminationsConfig",
+    "ManiSkillEnvConfig",
+    "ManiSkillExperienceReplayConfig",
+    "OfflineToOnlineReplayBufferConfig",
+]
+
+
+# ----------------------------------------------------------------------------- env
+@dataclass
+class ManiSkillEnvConfig(EnvLibsConfig):
+    """Configuration for ManiSkillEnv environment.
+
+    Hydra configuration for :class:`~torchrl.envs.ManiSkillEnv`. ``obs_mode``,
+    ``reward_mode``, ``control_mode``, ``render_mode``, ``sim_backend``,
+    ``render_backend`` and ``max_episode_steps`` are passed to ``gym.make``; their
+    defaults are ManiSkill's.
+    """
+
+    env_name: str = MISSING
+    num_envs: int = 1
+    obs_mode: str | None = None
+    reward_mode: str | None = None
+    control_mode: str | None = None
+    render_mode: str | None = None
+    sim_backend: str = "auto"
+    render_backend: str = "gpu"
+    max_episode_steps: int | None = None
+    from_pixels: bool = False
+    pixels_only: bool = False
+    pixels_key: str = "pixels"
+    info_keys: list[str] | None = None
+    device: str | None = None
+    batch_size: list[int] | None = None
+    allow_done_after_reset: bool = False
+    num_workers: int = 1
+    _target_: str = "maniskill_torchrl.ManiSkillEnv"
+
+    def __post_init__(self) -> None:
+        """Post-initialization hook for ManiSkillEnv configuration."""
+        super().__post_init__()
+
+
+# ----------------------------------------------------------------------------- transforms
+@dataclass
+class ActionRepeatConfig(TransformConfig):
+    """:class:`~maniskill_torchrl.transforms.ActionRepeat`: ManiSkill's ``ActionRepeatWrapper``."""
+
+    repeat: int = MISSING
+    _target_: str = "maniskill_torchrl.transforms.ActionRepeat"
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+
+
+@dataclass
+class EpisodeMetricsConfig(TransformConfig):
+    """:class:`~maniskill_torchrl.transforms.EpisodeMetrics`: each episode's return, length and
+    success / fail (ManiSkill's ``CPUGymWrapper`` episode info)."""
+
+    summation: str | None = None
+    _target_: str = "maniskill_torchrl.transforms.EpisodeMetrics"
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+
+
+@dataclass
+class IgnoreTerminationsConfig(TransformConfig):
+    """:class:`~maniskill_torchrl.transforms.IgnoreTerminations`: episodes end at the time limit."""
+
+    in_keys: list[Any] | None = None
+    _target_: str = "maniskill_torchrl.transforms.IgnoreTerminations"
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+
+
+@dataclass
+class CPUUnbatchConfig(TransformConfig):
+    """:class:`~maniskill_torchrl.transforms.CPUUnbatch`: one CPU-sim env without its env dim."""
+
+    _target_: str = "maniskill_torchrl.transforms.CPUUnbatch"
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+
+
+# ----------------------------------------------------------------------------- demonstrations
+@dataclass
+class ManiSkillExperienceReplayConfig(ReplayBufferBaseConfig):
+    """:class:`~maniskill_torchrl.data.ManiSkillExperienceReplay`: a ManiSkill trajectory file
+    (``path``: the ``.h5`` file) as a replay buffer laid out as the env's steps."""
+
+    path: str = MISSING
+    batch_size: int = MISSING
+    env_id: str | None = None
+    success_only: bool = False
+    num_episodes: int | None = None
+    root: str | None = None
+    download: Any = True
+    split_trajs: bool = False
+    sampler: Any = None
+    writer: Any = None
+    collate_fn: Any = None
+    pin_memory: bool = False
+    prefetch: int | None = None
+    transform: Any = None
+    _target_: str = "maniskill_torchrl.data.ManiSkillExperienceReplay"
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+
+
+@dataclass
+class OfflineToOnlineReplayBufferConfig(ReplayBufferBaseConfig):
+    """:class:`~torchrl.data.OfflineToOnlineReplayBuffer` (TorchRL has no config for it):
+    ``offline_dataset`` a dataset id such as ``"maniskill:PickCube-v1/motionplanning"`` (or a
+    buffer node), ``dataset_kwargs`` what the dataset is built with besides ``batch_size``."""
+
+    offline_dataset: Any = MISSING
+    online_storage: Any = None
+    online_capacity: int | None = None
+    offline_fraction: float = 0.5
+    batch_size: int | None = None
+    transform: Any = None
+    dataset_kwargs: dict[str, Any] | None = None
+    _target_: str = "maniskill_torchrl.configs._make_offline_to_online_buffer"
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+
+
+def _make_offline_to_online_buffer(offline_dataset: Any, *, dataset_kwargs: dict | None = None, **kwargs: Any) -> Any:
+    # OfflineToOnlineReplayBuffer takes the dataset's arguments as **kwargs, which a config field cannot be.
+    from torchrl.data import OfflineToOnlineReplayBuffer
+
+    return OfflineToOnlineReplayBuffer(offline_dataset, **kwargs, **dict(dataset_kwargs or {}))
+
+
+def _register_configs() -> None:
+    cs = ConfigStore.instance()
+    cs.store(group="env", name="maniskill", node=ManiSkillEnvConfig)
+    cs.store(group="transform", name="action_repeat", node=ActionRepeatConfig)
+    cs.store(group="transform", name="episode_metrics", node=EpisodeMetricsConfig)
+    cs.store(group="transform", name="ignore_terminations", node=IgnoreTerminationsConfig)
+    cs.store(group="transform", name="cpu_unbatch", node=CPUUnbatchConfig)
+    cs.store(group="replay_buffer", name="maniskill", node=ManiSkillExperienceReplayConfig)
+    cs.store(group="replay_buffer", name="offline_to_online", node=OfflineToOnlineReplayBufferConfig)
+
+
+_register_configs()

@@ -1,0 +1,162 @@
+"""The library in TorchRL's config system (``maniskill_torchrl/configs.py``): every node is registered in
+TorchRL's ``ConfigStore`` groups, and what a node builds is what the same arguments build by hand, on real tasks
+(seeded rollouts compared bit for bit, demonstrations read from a file ManiSkill's ``RecordEpisode`` wrote)."""
+
+from __future__ import annotations
+
+import ast
+import importlib
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from hydra.core.config_store import ConfigStore
+from hydra.utils import instantiate
+from mani_skill.utils.wrappers import RecordEpisode
+from omegaconf import OmegaConf
+from torchrl.envs import TransformedEnv
+from torchrl.trainers.algorithms.configs import ComposeConfig, TransformedEnvConfig
+
+import maniskill_torchrl.configs as configs
+from maniskill_torchrl import ManiSkillEnv
+from maniskill_torchrl.data import ManiSkillExperienceReplay
+from maniskill_torchrl.testing import assert_tensordict_equal
+from maniskill_torchrl.transforms import ActionRepeat, EpisodeMetrics, IgnoreTerminations
+from support.helpers import make_gym_env, random_actions
+
+ROOT = Path(__file__).resolve().parents[2]
+TASK = "PickCube-v1"
+REGISTERED = {
+    ("env", "maniskill"): configs.ManiSkillEnvConfig,
+    ("transform", "action_repeat"): configs.ActionRepeatConfig,
+    ("transform", "episode_metrics"): configs.EpisodeMetricsConfig,
+    ("transform", "ignore_terminations"): configs.IgnoreTerminationsConfig,
+    ("transform", "cpu_unbatch"): configs.CPUUnbatchConfig,
+    ("replay_buffer", "maniskill"): configs.ManiSkillExperienceReplayConfig,
+    ("replay_buffer", "offline_to_online"): configs.OfflineToOnlineReplayBufferConfig,
+}
+
+
+def _build(node):
+    return instantiate(OmegaConf.structured(node))
+
+
+def _rollout(env, steps=6):
+    env.set_seed(3)
+    torch.manual_seed(3)
+    try:
+        return env.rollout(steps, break_when_any_done=False)
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize(("group", "name"), sorted(REGISTERED))
+def test_registered_in_torchrls_groups(group, name):
+    node = ConfigStore.instance().repo[group][f"{name}.yaml"].node
+    assert OmegaConf.get_type(node) is REGISTERED[group, name]
+    assert node._target_ == REGISTERED[group, name]._target_
+
+
+def test_env_config_builds_the_library_env():
+    node = configs.ManiSkillEnvConfig(env_name=TASK, obs_mode="state", max_episode_steps=4)
+    env = _build(node)
+    assert type(env) is ManiSkillEnv
+    want = _rollout(ManiSkillEnv(TASK, obs_mode="state", max_episode_steps=4))
+    assert_tensordict_equal(_rollout(env), want)
+
+
+def test_transform_configs_build_the_transforms():
+    """A TransformedEnv node of TorchRL's, the library's transforms in TorchRL's Compose node: the same
+    rollout as the stack built by hand (episodes end at 3 steps, repeat 2: metrics and repeats both show)."""
+    base = configs.ManiSkillEnvConfig(env_name=TASK, obs_mode="state", max_episode_steps=3)
+    transforms = ComposeConfig(
+        transforms=[
+            configs.IgnoreTerminationsConfig(),
+            configs.ActionRepeatConfig(repeat=2),
+            configs.EpisodeMetricsConfig(),
+        ]
+    )
+    env = _build(TransformedEnvConfig(base_env=base, transform=transforms))
+    assert [type(t) for t in env.transform] == [IgnoreTerminations, ActionRepeat, EpisodeMetrics]
+    by_hand = TransformedEnv(
+        ManiSkillEnv(TASK, obs_mode="state", max_episode_steps=3),
+        IgnoreTerminations(),
+    )
+    by_hand.append_transform(ActionRepeat(2))
+    by_hand.append_transform(EpisodeMetrics())
+    got, want = _rollout(env), _rollout(by_hand)
+    assert got["next", "episode", "episode_len"].max() > 0  # an episode ended, its metrics are there
+    assert_tensordict_equal(got, want)
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    """ManiSkill's RecordEpisode file of two seeded episodes (nothing can be downloaded)."""
+    out = tmp_path_factory.mktemp("demo")
+    env = make_gym_env(TASK, obs_mode="state", max_episode_steps=4)
+    rec = RecordEpisode(env, output_dir=str(out), trajectory_name="demo", save_video=False, record_reward=True)
+    try:
+        for seed in range(2):
+            rec.reset(seed=seed)
+            for action in random_actions(env.unwrapped.single_action_space, 4, seed=seed):
+                rec.step(action.unsqueeze(0))
+    finally:
+        rec.close()
+    return out / "demo.h5"
+
+
+def test_demonstration_configs(demo, tmp_path):
+    node = configs.ManiSkillExperienceReplayConfig(path=str(demo), batch_size=4, root=str(tmp_path))
+    buffer = _build(node)
+    want = ManiSkillExperienceReplay(demo, 4, root=tmp_path / "direct")
+    assert_tensordict_equal(buffer.storage[:], want.storage[:])
+    mixed = _build(
+        configs.OfflineToOnlineReplayBufferConfig(
+            offline_dataset=f"maniskill:{demo}",
+            online_capacity=16,
+            batch_size=4,
+            offline_fraction=0.5,
+            dataset_kwargs={"root": str(tmp_path / "prefix")},
+        )
+    )
+    mixed.extend(want.storage[:3].clone())
+    batch = mixed.sample()
+    assert batch.shape == (4,) and set(batch.keys(True, True)) == set(want.storage[:1].keys(True, True))
+
+
+def test_upstream_config_is_this_class():
+    """upstream/apply.py adds this very class to TorchRL, its _target_ TorchRL's ManiSkillEnv."""
+    spec = importlib.util.spec_from_file_location("apply", ROOT / "upstream" / "apply.py")
+    apply = importlib.util.module_from_spec(spec)
+    sys.modules["apply"] = apply
+    try:
+        spec.loader.exec_module(apply)
+        text = apply._config_class()
+    finally:
+        del sys.modules["apply"]
+    (cls,) = ast.parse(text).body
+    assert cls.name == "ManiSkillEnvConfig"
+    here = ast.parse(Path(configs.__file__).read_text())
+    (ours,) = [n for n in here.body if isinstance(n, ast.ClassDef) and n.name == "ManiSkillEnvConfig"]
+    targets = {
+        ast.unparse(a.value)
+        for c in (cls, ours)
+        for a in c.body
+        if isinstance(a, ast.AnnAssign) and a.target.id == "_target_"
+    }
+    assert targets == {"'torchrl.envs.libs.maniskill.ManiSkillEnv'", "'maniskill_torchrl.ManiSkillEnv'"}
+
+    def rest(c):
+        return [ast.dump(a) for a in c.body if not (isinstance(a, ast.AnnAssign) and a.target.id == "_target_")]
+
+    assert rest(cls) == rest(ours)
+
+
+def test_without_hydra_the_error_names_the_extra(monkeypatch):
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "hydra" else real(name, *a))
+    monkeypatch.delitem(sys.modules, "maniskill_torchrl.configs")
+    with pytest.raises(ImportError, match=r"maniskill-torchrl\[hydra\]"):
+        importlib.import_module("maniskill_torchrl.configs")
