@@ -167,7 +167,8 @@ class ManiSkillExperienceReplayConfig(ReplayBufferBaseConfig):
 class OfflineToOnlineReplayBufferConfig(ReplayBufferBaseConfig):
     """:class:`~torchrl.data.OfflineToOnlineReplayBuffer` (TorchRL has no config for it):
     ``offline_dataset`` a dataset id such as ``"maniskill:PickCube-v1/motionplanning"`` (or a
-    buffer node), ``dataset_kwargs`` what the dataset is built with besides ``batch_size``."""
+    buffer node), ``dataset_kwargs`` what the dataset is built with besides ``batch_size``. Its offline samples
+    leave out TorchRL's ``"index"`` entry, which online samples lack (:class:`_WithoutIndex`)."""
 
     offline_dataset: Any = MISSING
     online_storage: Any = None
@@ -182,11 +183,42 @@ class OfflineToOnlineReplayBufferConfig(ReplayBufferBaseConfig):
         super().__post_init__()
 
 
-def _make_offline_to_online_buffer(offline_dataset: Any, *, dataset_kwargs: dict | None = None, **kwargs: Any) -> Any:
+class _WithoutIndex:
+    """An offline dataset whose samples leave out TorchRL's ``"index"`` entry.
+
+    TorchRL 0.14.1's ``OfflineToOnlineReplayBuffer`` concatenates an offline sample (a dataset's, which has
+    ``"index"``) with an online one (its plain ``ReplayBuffer``'s, which has none): a ``KeyError`` once online data
+    is in (noted for upstream). Uniform sampling needs no index.
+    """
+
+    def __init__(self, dataset: Any) -> None:
+        self.dataset = dataset
+
+    def sample(self, batch_size: int | None = None) -> Any:
+        return self.dataset.sample(batch_size).exclude("index")
+
+    def __len__(self) -> int:
+        return len(self.dataset)
+
+    def __getattr__(self, name: str) -> Any:
+        if name == "dataset":  # not set yet (unpickling)
+            raise AttributeError(name)
+        return getattr(self.dataset, name)
+
+
+def _make_offline_to_online_buffer(
+    offline_dataset: Any, *, batch_size: int | None = None, dataset_kwargs: dict | None = None, **kwargs: Any
+) -> Any:
     # OfflineToOnlineReplayBuffer takes the dataset's arguments as **kwargs, which a config field cannot be.
     from torchrl.data import OfflineToOnlineReplayBuffer
+    from torchrl.data.datasets import load_dataset
 
-    return OfflineToOnlineReplayBuffer(offline_dataset, **kwargs, **dict(dataset_kwargs or {}))
+    if isinstance(offline_dataset, str):
+        dataset_kwargs = {"batch_size": batch_size, **dict(dataset_kwargs or {})}
+        offline_dataset = load_dataset(offline_dataset, **dataset_kwargs)
+    elif dataset_kwargs:
+        raise ValueError("dataset_kwargs is for an offline_dataset given as a dataset id (a string).")
+    return OfflineToOnlineReplayBuffer(_WithoutIndex(offline_dataset), batch_size=batch_size, **kwargs)
 
 
 def _register_configs() -> None:
