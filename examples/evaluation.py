@@ -1,12 +1,9 @@
 """Evaluation shared by the training examples (``ppo_torchrl.py``, ``sac_torchrl.py``, ``bc_torchrl.py``)
-and ``evaluate_gym.py``: the evaluation env, seeded full episodes scored by ``EpisodeMetrics``, and
-the episode statistics of a collected batch.
-
-Not TorchRL's ``torchrl.collectors.Evaluator``: it runs a collector-style rollout for a number of
-trajectories, but the evaluation here seeds every episode (episode ``k`` gets ``seed + k``, so that
-two policies, or the gym and TorchRL paths, meet the same initial states) and runs each batch of
-episodes to the time limit with ``IgnoreTerminations``, as ManiSkill's baselines evaluate; that is
-one ``env.rollout`` per batch of episodes.
+and ``evaluate_gym.py``: the evaluation env (``--sim-backend`` / ``--device`` as ``sim_device``
+resolves them) and one logged evaluation. Seeded full episodes scored by ``EpisodeMetrics``
+(:func:`evaluate_policy`), the episode statistics of a collected batch (:func:`episode_stats`)
+and a task's time limit live in the library, :mod:`maniskill_torchrl.evaluation`, which TorchRL's
+trainers use too (``maniskill_torchrl.trainer_hooks``).
 """
 
 from __future__ import annotations
@@ -14,25 +11,13 @@ from __future__ import annotations
 from typing import Any
 
 import torch
-from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
-from torchrl.envs.utils import ExplorationType, RandomPolicy, set_exploration_type
 
+from maniskill_torchrl.evaluation import episode_stats, evaluate_policy, time_limit
 from maniskill_torchrl.pipeline import make_env as make_pipeline
 from sim_device import resolve
 
-
-def time_limit(env_id: str, max_episode_steps: int | None = None) -> int:
-    """The task's episode length: ``max_episode_steps`` if given, else the registered time limit."""
-    if max_episode_steps is not None:
-        return max_episode_steps
-    import gymnasium as gym
-    import mani_skill.envs  # noqa: F401  (registers the tasks)
-
-    limit = gym.spec(env_id).max_episode_steps
-    if limit is None:
-        raise SystemExit(f"{env_id} has no registered time limit: pass --max-episode-steps to evaluate it")
-    return limit
+__all__ = ["episode_stats", "evaluate_and_log", "evaluate_policy", "make_eval_env", "time_limit"]
 
 
 def make_eval_env(
@@ -59,59 +44,6 @@ def make_eval_env(
         device=device,
         **env_kwargs,
     )
-
-
-@torch.no_grad()
-def evaluate_policy(
-    env: EnvBase,
-    policy: Any,
-    episodes: int,
-    seed: int,
-    max_steps: int,
-    exploration: ExplorationType = ExplorationType.DETERMINISTIC,
-) -> dict[str, float]:
-    """Runs ``episodes`` full episodes, seeded ``seed``, ``seed + 1``, ...; the policy acts
-    deterministically (the TanhNormal's ``tanh(loc)``), or samples with
-    ``exploration=ExplorationType.RANDOM``. ``policy=None``: uniform random actions.
-
-    Returns the means of ``success_once``, ``success_at_end`` and ``return`` (and ``episodes``).
-    ``max_steps``: agent steps per episode (the time limit divided by any ActionRepeat)."""
-    n = env.batch_size.numel()
-    acting = RandomPolicy(env.full_action_spec) if policy is None else policy
-    finished = []
-    for first in range(0, episodes, n):
-        env.set_seed(seed + first)  # sub-env i starts with seed + first + i
-        with set_exploration_type(exploration):
-            rollout = env.rollout(max_steps, acting, break_when_any_done=False)
-        done = rollout.get(("next", "done")).squeeze(-1)
-        if not bool(done[..., -1].all()):
-            raise RuntimeError(
-                f"evaluation episodes did not end after {max_steps} steps: pass the task's time limit "
-                "(--max-episode-steps) divided by the ActionRepeat"
-            )
-        finished.append(rollout.get(("next", "episode"))[..., -1])
-    ep = torch.cat(finished)[:episodes]
-    out = {"episodes": float(ep.batch_size[0])}
-    for key in ("success_once", "success_at_end", "return"):
-        if key in ep.keys():
-            out[key] = ep.get(key).float().mean().item()
-    return out
-
-
-def episode_stats(batch: TensorDictBase) -> dict[str, float]:
-    """Means of EpisodeMetrics' ``("next", "episode")`` entries over the episodes that ended in ``batch``."""
-    done = batch.get(("next", "done")).squeeze(-1)
-    n = int(done.sum())
-    out: dict[str, float] = {"episodes": n}
-    if n == 0:
-        return out
-    ep = batch.get(("next", "episode"))[done]
-    out["return"] = ep.get("return").float().mean().item()
-    out["episode_len"] = ep.get("episode_len").float().mean().item()
-    for key in ("success_once", "success_at_end", "fail_once"):
-        if key in ep.keys():
-            out[key] = ep.get(key).float().mean().item()
-    return out
 
 
 def evaluate_and_log(

@@ -19,6 +19,9 @@ must not import TorchRL, so the TorchRL ones are reached through the objects pas
   :func:`shutdown_workers`: the private attributes of
   ``torchrl.envs.ParallelEnv`` that :mod:`maniskill_torchrl.parallel` reads (its
   overrides of ``_wait_for_workers`` / ``_start_workers`` keep their TorchRL names).
+- :func:`trainer_ops`: ``Trainer._<dest>_ops``, the ops a ``torchrl.trainers.Trainer`` registered
+  at one point of its loop (:mod:`maniskill_torchrl.trainer_hooks` finds the replay buffer's
+  ``extend`` there).
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ __all__ = [
     "new_tensordict",
     "shutdown_workers",
     "start_method",
+    "trainer_ops",
     "uses_buffers",
     "workers",
 ]
@@ -91,3 +95,9 @@ def start_method(env: Any) -> str | None:
 
 def shutdown_workers(env: Any) -> None:
     env._shutdown_workers()
+
+
+def trainer_ops(trainer: Any, dest: str) -> list[tuple[Callable, dict]]:
+    """The ``(op, kwargs)`` pairs a ``torchrl.trainers.Trainer`` runs at ``dest`` (``"pre_epoch"``...),
+    in order: ``Trainer._<dest>_ops``, what ``register_op(dest, op)`` appends to."""
+    return getattr(trainer, f"_{dest}_ops")

@@ -6,17 +6,20 @@ replay buffer.
 ``from maniskill_torchrl.configs import *`` beside TorchRL's own) registers, in TorchRL's
 ``ConfigStore`` groups:
 
-=================  ======================  =========================================
-group              name                    node
-=================  ======================  =========================================
-``env``            ``maniskill``           :class:`ManiSkillEnvConfig`
-``transform``      ``action_repeat``       :class:`ActionRepeatConfig`
-``transform``      ``episode_metrics``     :class:`EpisodeMetricsConfig`
-``transform``      ``ignore_terminations`` :class:`IgnoreTerminationsConfig`
-``transform``      ``cpu_unbatch``         :class:`CPUUnbatchConfig`
-``replay_buffer``  ``maniskill``           :class:`ManiSkillExperienceReplayConfig`
-``replay_buffer``  ``offline_to_online``   :class:`OfflineToOnlineReplayBufferConfig`
-=================  ======================  =========================================
+=================  ===========================  ==========================================
+group              name                         node
+=================  ===========================  ==========================================
+``env``            ``maniskill``                :class:`ManiSkillEnvConfig`
+``transform``      ``action_repeat``            :class:`ActionRepeatConfig`
+``transform``      ``episode_metrics``          :class:`EpisodeMetricsConfig`
+``transform``      ``ignore_terminations``      :class:`IgnoreTerminationsConfig`
+``transform``      ``cpu_unbatch``              :class:`CPUUnbatchConfig`
+``replay_buffer``  ``maniskill``                :class:`ManiSkillExperienceReplayConfig`
+``replay_buffer``  ``offline_to_online``        :class:`OfflineToOnlineReplayBufferConfig`
+``hook``           ``success_rate_evaluation``  :class:`SuccessRateEvaluationConfig`
+``hook``           ``log_episode_metrics``      :class:`LogEpisodeMetricsConfig`
+``hook``           ``keep_random_frames``       :class:`KeepRandomFramesConfig`
+=================  ===========================  ==========================================
 
 and the ``maniskill:`` prefix of :func:`torchrl.data.datasets.load_dataset`. It needs
 ``hydra-core`` (the ``hydra`` extra: ``pip install "maniskill-torchrl[hydra]"``).
@@ -42,6 +45,7 @@ from hydra.core.config_store import ConfigStore  # noqa: E402
 from omegaconf import MISSING  # noqa: E402
 from torchrl.trainers.algorithms.configs.data import ReplayBufferBaseConfig  # noqa: E402
 from torchrl.trainers.algorithms.configs.envs_libs import EnvLibsConfig  # noqa: E402
+from torchrl.trainers.algorithms.configs.hooks import HookConfig  # noqa: E402
 from torchrl.trainers.algorithms.configs.transforms import TransformConfig  # noqa: E402
 
 import maniskill_torchrl.data  # noqa: E402, F401  (registers the maniskill: dataset prefix)
@@ -51,9 +55,12 @@ __all__ = [
     "CPUUnbatchConfig",
     "EpisodeMetricsConfig",
     "IgnoreTerminationsConfig",
+    "KeepRandomFramesConfig",
+    "LogEpisodeMetricsConfig",
     "ManiSkillEnvConfig",
     "ManiSkillExperienceReplayConfig",
     "OfflineToOnlineReplayBufferConfig",
+    "SuccessRateEvaluationConfig",
 ]
 
 
@@ -221,6 +228,51 @@ def _make_offline_to_online_buffer(
     return OfflineToOnlineReplayBuffer(_WithoutIndex(offline_dataset), batch_size=batch_size, **kwargs)
 
 
+# ----------------------------------------------------------------------------- trainer hooks
+@dataclass
+class SuccessRateEvaluationConfig(HookConfig):
+    """:class:`~maniskill_torchrl.trainer_hooks.SuccessRateEvaluation`: ``episodes`` seeded episodes
+    every ``interval`` frames on ``create_env_fn`` (an env node; ``IgnoreTerminations`` then
+    ``EpisodeMetrics`` last), success rates logged as ``eval/success_once``..."""
+
+    create_env_fn: Any = MISSING
+    interval: int = 20_000
+    episodes: int = 50
+    seed: int = 10_000
+    max_steps: int | None = None
+    policy: Any = None
+    at_start: bool = False
+    prefix: str = "eval"
+    _target_: str = "maniskill_torchrl.trainer_hooks.SuccessRateEvaluation"
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+
+
+@dataclass
+class LogEpisodeMetricsConfig(HookConfig):
+    """:class:`~maniskill_torchrl.trainer_hooks.LogEpisodeMetrics`: the training episodes'
+    ``EpisodeMetrics`` (``train/success_once``...) as they end."""
+
+    interval: int = 0
+    prefix: str = "train"
+    _target_: str = "maniskill_torchrl.trainer_hooks.LogEpisodeMetrics"
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+
+
+@dataclass
+class KeepRandomFramesConfig(HookConfig):
+    """:class:`~maniskill_torchrl.trainer_hooks.KeepRandomFrames`: the ``init_random_frames`` batches
+    into an off-policy trainer's replay buffer."""
+
+    _target_: str = "maniskill_torchrl.trainer_hooks.KeepRandomFrames"
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+
+
 def _register_configs() -> None:
     cs = ConfigStore.instance()
     cs.store(group="env", name="maniskill", node=ManiSkillEnvConfig)
@@ -230,6 +282,9 @@ def _register_configs() -> None:
     cs.store(group="transform", name="cpu_unbatch", node=CPUUnbatchConfig)
     cs.store(group="replay_buffer", name="maniskill", node=ManiSkillExperienceReplayConfig)
     cs.store(group="replay_buffer", name="offline_to_online", node=OfflineToOnlineReplayBufferConfig)
+    cs.store(group="hook", name="success_rate_evaluation", node=SuccessRateEvaluationConfig)
+    cs.store(group="hook", name="log_episode_metrics", node=LogEpisodeMetricsConfig)
+    cs.store(group="hook", name="keep_random_frames", node=KeepRandomFramesConfig)
 
 
 _register_configs()
