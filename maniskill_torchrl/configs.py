@@ -14,6 +14,8 @@ group              name                         node
 ``transform``      ``episode_metrics``          :class:`EpisodeMetricsConfig`
 ``transform``      ``ignore_terminations``      :class:`IgnoreTerminationsConfig`
 ``transform``      ``cpu_unbatch``              :class:`CPUUnbatchConfig`
+``transform``      ``sparse_reward``            :class:`SparseRewardConfig`
+``transform``      ``exclude_keys``             :class:`ExcludeKeysConfig`
 ``replay_buffer``  ``maniskill``                :class:`ManiSkillExperienceReplayConfig`
 ``replay_buffer``  ``offline_to_online``        :class:`OfflineToOnlineReplayBufferConfig`
 ``hook``           ``success_rate_evaluation``  :class:`SuccessRateEvaluationConfig`
@@ -32,7 +34,7 @@ with its ``_target_`` there TorchRL's ``ManiSkillEnv`` and here this library's.
 from __future__ import annotations
 
 import importlib.util
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 if importlib.util.find_spec("hydra") is None:  # TorchRL's configs need it too
@@ -54,12 +56,14 @@ __all__ = [
     "ActionRepeatConfig",
     "CPUUnbatchConfig",
     "EpisodeMetricsConfig",
+    "ExcludeKeysConfig",
     "IgnoreTerminationsConfig",
     "KeepRandomFramesConfig",
     "LogEpisodeMetricsConfig",
     "ManiSkillEnvConfig",
     "ManiSkillExperienceReplayConfig",
     "OfflineToOnlineReplayBufferConfig",
+    "SparseRewardConfig",
     "SuccessRateEvaluationConfig",
 ]
 
@@ -142,6 +146,41 @@ class CPUUnbatchConfig(TransformConfig):
 
     def __post_init__(self) -> None:
         super().__post_init__()
+
+
+@dataclass
+class SparseRewardConfig(TransformConfig):
+    """:class:`~maniskill_torchrl.transforms.SparseReward`: ManiSkill's sparse reward (``success -
+    fail``) into ``"reward"``, e.g. on demonstrations recorded with another reward or none."""
+
+    success_key: Any = "success"
+    fail_key: Any = "fail"
+    reward_key: Any = "reward"
+    _target_: str = "maniskill_torchrl.transforms.SparseReward"
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+
+
+@dataclass
+class ExcludeKeysConfig(TransformConfig):
+    """TorchRL's :class:`~torchrl.envs.ExcludeTransform` with nested keys, each a list
+    (``exclude_keys: [env_states, [next, env_states]]``). TorchRL 0.14.1's ``exclude`` node passes
+    ``exclude_keys=`` to a transform that takes the keys as positional arguments, and a YAML list
+    is no nested key (noted for upstream)."""
+
+    exclude_keys: list[Any] = field(default_factory=list)
+    _target_: str = "maniskill_torchrl.configs._make_exclude_transform"
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+
+
+def _make_exclude_transform(exclude_keys: Any = ()) -> Any:
+    from torchrl.envs import ExcludeTransform
+
+    keys = [key if isinstance(key, str) else tuple(key) for key in exclude_keys]
+    return ExcludeTransform(*keys)
 
 
 # ----------------------------------------------------------------------------- demonstrations
@@ -280,6 +319,8 @@ def _register_configs() -> None:
     cs.store(group="transform", name="episode_metrics", node=EpisodeMetricsConfig)
     cs.store(group="transform", name="ignore_terminations", node=IgnoreTerminationsConfig)
     cs.store(group="transform", name="cpu_unbatch", node=CPUUnbatchConfig)
+    cs.store(group="transform", name="sparse_reward", node=SparseRewardConfig)
+    cs.store(group="transform", name="exclude_keys", node=ExcludeKeysConfig)
     cs.store(group="replay_buffer", name="maniskill", node=ManiSkillExperienceReplayConfig)
     cs.store(group="replay_buffer", name="offline_to_online", node=OfflineToOnlineReplayBufferConfig)
     cs.store(group="hook", name="success_rate_evaluation", node=SuccessRateEvaluationConfig)

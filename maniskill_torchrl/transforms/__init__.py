@@ -4,6 +4,7 @@ from maniskill_torchrl.transforms.action_repeat import ActionRepeat
 from maniskill_torchrl.transforms.cpu_unbatch import CPUUnbatch
 from maniskill_torchrl.transforms.env_states import EnvStates
 from maniskill_torchrl.transforms.episode_metrics import EpisodeMetrics
+from maniskill_torchrl.transforms.sparse_reward import SparseReward
 from maniskill_torchrl.transforms.terminations import IgnoreTerminations
 
 __all__ = [
@@ -12,4 +13,5 @@ __all__ = [
     "EnvStates",
     "EpisodeMetrics",
     "IgnoreTerminations",
+    "SparseReward",
 ]
