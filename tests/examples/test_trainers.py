@@ -1,0 +1,451 @@
+"""TorchRL's own trainers on ManiSkill (``examples/trainers``): each YAML composes, trains a few
+hundred frames through ``train.py`` as a user starts it, and builds the env it names, bit for bit;
+the library's trainer hooks log what they should.
+
+``train.py`` runs in this process as ``python train.py`` runs it (``runpy``, with ``sys.argv`` as on
+the command line): a subprocess would import torch, TorchRL and ManiSkill again, most of its cost.
+Each run is cut to a few hundred frames, small networks and 2-episode evaluations by overrides; the
+CSV logger writes under the run's folder (``hydra.run.dir``), and the test reads it back.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import runpy
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from hydra.core.config_store import ConfigStore
+from hydra.core.global_hydra import GlobalHydra
+from hydra.utils import instantiate
+from mani_skill.utils.wrappers import RecordEpisode
+from omegaconf import OmegaConf
+from tensordict import TensorDict
+from torchrl.envs import Compose, ExcludeTransform, TransformedEnv
+from torchrl.record.loggers import Logger
+from torchrl.trainers import Trainer
+
+import maniskill_torchrl.configs as configs
+from maniskill_torchrl import ManiSkillEnv
+from maniskill_torchrl.evaluation import evaluate_policy
+from maniskill_torchrl.pipeline import make_env
+from maniskill_torchrl.testing import assert_tensordict_equal
+from maniskill_torchrl.trainer_hooks import KeepRandomFrames, LogEpisodeMetrics, SuccessRateEvaluation
+from maniskill_torchrl.transforms import EpisodeMetrics, IgnoreTerminations
+from support.helpers import make_gym_env, random_actions
+
+ROOT = Path(__file__).resolve().parents[2]
+TRAINERS = ROOT / "examples" / "trainers"
+CONFIGS = TRAINERS / "config"
+
+# What each YAML must build: its trainer (TorchRL's factory of SACTrainer, PPOTrainer,
+# OfflineToOnlineTrainer), and the env kwargs of ManiSkillEnv(...) by hand.
+EXPECTED = {
+    "sac_pushcube": (
+        "_make_sac_trainer",
+        dict(env_name="PushCube-v1", num_envs=4, obs_mode="state", control_mode="pd_ee_delta_pos"),
+    ),
+    "ppo_pullcube": (
+        "_make_ppo_trainer",
+        dict(env_name="PullCube-v1", num_envs=2, obs_mode="state", control_mode="pd_ee_delta_pos"),
+    ),
+    "rlpd_pickcube": (
+        "_make_offline_to_online_trainer",
+        dict(
+            env_name="PickCube-v1",
+            num_envs=8,
+            obs_mode="state",
+            control_mode="pd_joint_delta_pos",
+            reward_mode="sparse",
+        ),
+    ),
+}
+# A few hundred frames, small networks, 2-episode evaluations of 5 steps, every metric logged.
+SMALL = [
+    "trainer.progress_bar=false",
+    "trainer.log_interval=0",
+    "hooks.evaluation.episodes=2",
+    "eval_env.base_env.max_episode_steps=5",
+    "training_env.base_env.max_episode_steps=20",
+    "networks.policy_network.num_cells=[32,32]",
+]
+OVERRIDES = {
+    "sac_pushcube": [
+        *SMALL,
+        "networks.qvalue_network.num_cells=[32,32]",
+        "networks.qvalue_network.norm_class.normalized_shape=32",
+        "replay_buffer.batch_size=32",
+        "collector.total_frames=256",
+        "collector.init_random_frames=96",  # 3 batches of random actions
+        "hooks.evaluation.interval=128",
+    ],
+    "ppo_pullcube": [
+        *SMALL,
+        "networks.value_network.num_cells=[32,32]",
+        "collector.total_frames=400",
+        "trainer.num_epochs=2",
+        "hooks.evaluation.interval=200",
+    ],
+    "rlpd_pickcube": [
+        *SMALL,
+        "networks.qvalue_network.num_cells=[32,32]",
+        "networks.qvalue_network.norm_class.normalized_shape=32",
+        "training_env.base_env.num_envs=2",
+        "replay_buffer.batch_size=32",
+        "trainer.batch_size=32",
+        "collector.total_frames=256",
+        "collector.init_random_frames=64",
+        "hooks.evaluation.interval=128",
+    ],
+}
+
+
+def _compose(name: str, overrides: list[str] = (), hydra: bool = False):
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        return compose(config_name=name, overrides=list(overrides), return_hydra_config=hydra)
+
+
+def _scalars(folder: Path) -> dict[str, list[tuple[int, float]]]:
+    """Every scalar the CSV logger wrote under ``folder``: {name: [(frames, value), ...]}."""
+    out = {}
+    for path in sorted(folder.rglob("*.csv")):
+        name = path.relative_to(folder).with_suffix("").as_posix()
+        out[name] = [(int(step), float(value)) for step, value in csv.reader(path.open())]
+    return out
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    """A ManiSkill trajectory file of PickCube-v1 in the RLPD config's modes (RecordEpisode, three
+    seeded episodes of 8 random steps), recorded with the dense reward: the config must train on
+    the sparse one (nothing can be downloaded)."""
+    out = tmp_path_factory.mktemp("demo")
+    env = make_gym_env("PickCube-v1", obs_mode="state", control_mode="pd_joint_delta_pos", max_episode_steps=8)
+    rec = RecordEpisode(env, output_dir=str(out), trajectory_name="demo", save_video=False, record_reward=True)
+    try:
+        for seed in range(3):
+            rec.reset(seed=seed)
+            for action in random_actions(env.unwrapped.single_action_space, 8, seed=seed):
+                rec.step(action.unsqueeze(0))
+    finally:
+        rec.close()
+    return out / "demo.h5"
+
+
+# ------------------------------------------------------------------------------ the YAMLs
+def test_hook_and_transform_configs_are_registered():
+    repo = ConfigStore.instance().repo
+    for group, name, node in [
+        ("hook", "success_rate_evaluation", configs.SuccessRateEvaluationConfig),
+        ("hook", "log_episode_metrics", configs.LogEpisodeMetricsConfig),
+        ("hook", "keep_random_frames", configs.KeepRandomFramesConfig),
+        ("transform", "sparse_reward", configs.SparseRewardConfig),
+        ("transform", "exclude_keys", configs.ExcludeKeysConfig),
+    ]:
+        assert OmegaConf.get_type(repo[group][f"{name}.yaml"].node) is node
+
+
+@pytest.mark.parametrize("name", sorted(EXPECTED))
+def test_config_composes(name):
+    """The YAML composes in TorchRL's ConfigStore: its trainer, ManiSkill as the env, the library's
+    transforms through TorchRL's nodes, a logger that needs no account, the run in its own folder."""
+    cfg = _compose(name, ["demos=/any/file.h5"] if name == "rlpd_pickcube" else [], hydra=True)
+    target, env_kwargs = EXPECTED[name]
+    assert cfg.trainer._target_ == f"torchrl.trainers.algorithms.configs.trainers.{target}"
+    for env in (cfg.training_env, cfg.eval_env):
+        assert (
+            env._target_ == "torchrl.envs.TransformedEnv" and env.base_env._target_ == "maniskill_torchrl.ManiSkillEnv"
+        )
+        assert [t._target_ for t in env.transform.transforms] == [
+            "maniskill_torchrl.transforms.IgnoreTerminations",
+            "maniskill_torchrl.transforms.EpisodeMetrics",
+        ]
+        for key in ("env_name", "obs_mode", "control_mode", "reward_mode"):
+            assert env.base_env[key] == env_kwargs.get(key), key
+    assert cfg.training_env.base_env.num_envs == env_kwargs["num_envs"]
+    assert cfg.logger._target_ == "torchrl.record.loggers.csv.CSVLogger"
+    assert cfg.hydra.job.chdir is True
+    hooks = {h._target_.rsplit(".", 1)[1] for h in cfg.trainer.hooks}
+    assert {"SuccessRateEvaluation", "LogEpisodeMetrics"} <= hooks
+    assert ("KeepRandomFrames" in hooks) == (name != "ppo_pullcube")  # the off-policy ones
+
+
+def test_rlpd_needs_its_demonstrations():
+    cfg = _compose("rlpd_pickcube")
+    with pytest.raises(Exception, match="demos"):
+        OmegaConf.to_container(cfg.replay_buffer, resolve=True)
+
+
+@pytest.mark.parametrize("name", sorted(EXPECTED))
+def test_config_env_is_maniskill_env(name):
+    """The training env a YAML builds is ``ManiSkillEnv(...)`` + IgnoreTerminations + EpisodeMetrics,
+    bit for bit on a seeded rollout (episodes of 3 steps: the metrics and the time limit show)."""
+    _, env_kwargs = EXPECTED[name]
+    env_kwargs = dict(env_kwargs)
+    overrides = ["training_env.base_env.max_episode_steps=3"]
+    if name == "rlpd_pickcube":  # 2 of its 8 processes: the same env otherwise
+        overrides.append("training_env.base_env.num_envs=2")
+        env_kwargs["num_envs"] = 2
+    cfg = _compose(name, overrides)
+    env = instantiate(cfg.training_env)()
+    by_hand = TransformedEnv(
+        ManiSkillEnv(env_kwargs.pop("env_name"), **env_kwargs, sim_backend="physx_cpu", max_episode_steps=3),
+        Compose(IgnoreTerminations(), EpisodeMetrics()),
+    )
+    got, want = [], []
+    for e, out in ((env, got), (by_hand, want)):
+        e.set_seed(3)
+        torch.manual_seed(3)
+        try:
+            out.append(e.rollout(7, break_when_any_done=False))
+        finally:
+            e.close()
+    assert got[0]["next", "episode", "episode_len"].max() == 3  # episodes ended at the time limit
+    assert_tensordict_equal(got[0], want[0])
+
+
+# ----------------------------------------------------------------------------- training
+def _run_train_py(name, overrides, run_dir, monkeypatch):
+    """``python examples/trainers/train.py --config-name <name> <overrides>`` in this process; returns
+    the trainer it built (trained) and the scalars its CSV logger wrote."""
+    built = []
+    real = instantiate
+
+    def keep(config, *args, **kwargs):
+        out = real(config, *args, **kwargs)
+        built.append(out)
+        return out
+
+    import hydra.utils
+
+    monkeypatch.setattr(hydra.utils, "instantiate", keep)
+    monkeypatch.setattr(sys, "argv", ["train.py", "--config-name", name, *overrides, f"hydra.run.dir={run_dir}"])
+    monkeypatch.chdir(run_dir.parent)
+    threads = torch.get_num_threads()
+    GlobalHydra.instance().clear()
+    try:
+        runpy.run_path(str(TRAINERS / "train.py"), run_name="__main__")  # python train.py ...
+    finally:
+        torch.set_num_threads(threads)
+        GlobalHydra.instance().clear()
+    trainer = built[-1]  # the outermost instantiate returns last (TorchRL's factories call it too)
+    assert isinstance(trainer, Trainer), built
+    return trainer, _scalars(run_dir / "csv_logs" / name / "scalars")
+
+
+def _check_logs(scalars, total, interval, episode_len, envs):
+    """The hooks' logs: evaluations every ``interval`` frames and at the end, 2 episodes each; the
+    training episodes' metrics, each of ``episode_len`` steps (they end at the time limit)."""
+    evals = scalars["eval/success_once"]
+    assert [f for f, _ in evals] == list(range(interval, total + 1, interval))
+    assert all(v == 2 for _, v in scalars["eval/episodes"])
+    assert all(0 <= v <= 1 for _, v in evals + scalars["eval/success_at_end"])
+    assert len(scalars["eval/return"]) == len(evals)
+    logged = scalars["train/episode_len"]
+    assert logged and all(v == episode_len for _, v in logged)
+    # every training episode that ended is counted once
+    assert sum(v for _, v in scalars["train/episodes"]) == envs * (total // envs // episode_len)
+    for key in ("success_once", "success_at_end", "return"):
+        assert len(scalars[f"train/{key}"]) == len(logged)
+
+
+def test_sac_pushcube_trains(tmp_path, monkeypatch):
+    trainer, scalars = _run_train_py("sac_pushcube", OVERRIDES["sac_pushcube"], tmp_path / "run", monkeypatch)
+    assert trainer.collected_frames == 256
+    # every collected frame is in the buffer, the 96 random ones too (KeepRandomFrames: TorchRL's
+    # SACTrainer alone drops the 64 of the two batches before the one that reaches the threshold)
+    assert len(trainer.replay_buffer) == 256
+    assert scalars["optim_steps"][-1] == (256, (256 - 96) // 32 * 16 + 16)
+    _check_logs(scalars, total=256, interval=128, episode_len=20, envs=4)
+    assert "r_training" in scalars and "loss_qvalue" in scalars  # TorchRL's own logs still there
+
+
+def test_ppo_pullcube_trains(tmp_path, monkeypatch):
+    trainer, scalars = _run_train_py("ppo_pullcube", OVERRIDES["ppo_pullcube"], tmp_path / "run", monkeypatch)
+    assert trainer.collected_frames == 400
+    _check_logs(scalars, total=400, interval=200, episode_len=20, envs=2)
+    assert "loss_objective" in scalars and "loss_critic" in scalars
+
+
+def test_rlpd_pickcube_trains(tmp_path, monkeypatch, demo):
+    overrides = [
+        *OVERRIDES["rlpd_pickcube"],
+        f"demos={demo}",
+        f"+replay_buffer.dataset_kwargs.root={tmp_path / 'cache'}",
+    ]
+    trainer, scalars = _run_train_py("rlpd_pickcube", overrides, tmp_path / "run", monkeypatch)
+    assert trainer.collected_frames == 256
+    buffer = trainer.replay_buffer
+    assert len(buffer.offline_buffer) == 24 and len(buffer.online_buffer) == 256  # 3 demos x 8 steps
+    assert buffer.offline_fraction == 0.5  # RLPD's symmetric sampling, not annealed
+    batch = buffer.sample(64)
+    assert "env_states" not in batch.keys() and "index" not in batch.keys()
+    # ManiSkill's sparse reward on both halves (the demos were recorded with the dense one)
+    success = batch["next", "success"].float().unsqueeze(-1)
+    assert torch.equal(batch["next", "reward"], success)
+    assert not batch["next", "terminated"].any()  # episodes to the time limit on both halves
+    _check_logs(scalars, total=256, interval=128, episode_len=20, envs=2)
+    assert "loss_qvalue" in scalars
+
+
+# --------------------------------------------------------------------------------- hooks
+class _Logger(Logger):
+    """Records ``log_scalar`` calls."""
+
+    def __init__(self) -> None:
+        self.scalars: list[tuple[str, float, int]] = []
+        super().__init__(exp_name="test", log_dir="unused")
+
+    def _create_experiment(self):
+        return None
+
+    def log_scalar(self, name, value, step=None):
+        self.scalars.append((name, float(value), step))
+
+    def log_video(self, *a, **k):
+        pass
+
+    def log_hparams(self, *a, **k):
+        pass
+
+    def log_histogram(self, *a, **k):
+        pass
+
+    def __repr__(self):
+        return "_Logger()"
+
+
+class _Trainer:
+    """What the hooks read of a TorchRL trainer."""
+
+    def __init__(self, total_frames=1000):
+        self.collected_frames, self.total_frames, self.frame_skip = 0, total_frames, 1
+        self.logger = _Logger()
+        self.ops: list[tuple[str, object]] = []
+
+    def register_op(self, dest, op, **kwargs):
+        self.ops.append((dest, op))
+
+    def register_module(self, name, module):
+        pass
+
+
+def _batch(done, success, ret, length):
+    """A collected batch [envs, steps] with EpisodeMetrics' entries (only read where done)."""
+    done = torch.tensor(done)
+    shape = done.shape
+    episode = {
+        "success_once": torch.tensor(success).expand(shape),
+        "success_at_end": torch.tensor(success).expand(shape),
+        "return": torch.tensor(ret, dtype=torch.float32).expand(shape),
+        "episode_len": torch.tensor(length).expand(shape),
+    }
+    return TensorDict({"next": {"done": done.unsqueeze(-1), "episode": episode}}, shape)
+
+
+def test_log_episode_metrics_logs_finished_episodes():
+    trainer = _Trainer()
+    hook = LogEpisodeMetrics(interval=100)
+    hook.register(trainer)
+    assert trainer.ops == [("pre_steps_log", hook)]
+    log = trainer.logger.scalars
+    # 2 envs x 3 steps: env 0 ends an episode (success, return 2, 3 steps); the rest is not read
+    trainer.collected_frames = 6
+    hook(_batch([[False, False, True], [False, False, False]], [[True], [False]], [[2.0], [9.0]], [[3], [7]]))
+    assert sorted(log) == [
+        ("train/episode_len", 3.0, 6),
+        ("train/episodes", 1.0, 6),
+        ("train/return", 2.0, 6),
+        ("train/success_at_end", 1.0, 6),
+        ("train/success_once", 1.0, 6),
+    ]
+    log.clear()
+    # within the interval: kept; then both episodes logged together, as their mean
+    trainer.collected_frames = 50
+    hook(_batch([[False, False, False], [False, True, False]], [[True], [False]], [[2.0], [4.0]], [[3], [5]]))
+    assert log == []
+    trainer.collected_frames = 110
+    hook(_batch([[True, False, False], [False, False, False]], [[True], [False]], [[6.0], [0.0]], [[9], [1]]))
+    assert dict((n, v) for n, v, _ in log) == {
+        "train/return": 5.0,
+        "train/episode_len": 7.0,
+        "train/success_once": 0.5,
+        "train/success_at_end": 0.5,
+        "train/episodes": 2.0,
+    }
+    assert {s for _, _, s in log} == {110}
+    with pytest.raises(KeyError, match="EpisodeMetrics"):
+        hook(TensorDict({"next": {"done": torch.zeros(2, 1, dtype=torch.bool)}}, [2]))
+
+
+def test_success_rate_evaluation_runs_seeded_episodes():
+    """Every ``interval`` frames and at the end, the seeded evaluation of ``evaluate_policy`` (the same
+    numbers on each call: seeded, deterministic), logged at the trainer's frame count."""
+    env = make_env("PushCube-v1", num_envs=2, ignore_terminations=True, obs_mode="state", max_episode_steps=4)
+    torch.manual_seed(0)
+    policy = instantiate(
+        OmegaConf.create(
+            {
+                "_target_": "torchrl.trainers.algorithms.configs.modules._make_tanh_normal_model",
+                "network": {"_target_": "torchrl.modules.MLP", "in_features": 35, "out_features": 16, "num_cells": [8]},
+                "in_keys": ["observation"],
+                "param_keys": ["loc", "scale"],
+                "out_keys": ["action"],
+            }
+        )
+    )
+    trainer = _Trainer(total_frames=250)
+    hook = SuccessRateEvaluation(env, interval=100, episodes=3, seed=7, policy=policy)
+    hook.register(trainer)
+    assert ("post_steps_log", hook) in trainer.ops and ("shutdown", hook.close) in trainer.ops
+    for frames in (50, 100, 150, 230, 250):
+        trainer.collected_frames = frames
+        hook()
+    assert [r["frames"] for r in hook.results] == [100, 230, 250]  # interval, interval, the end
+    want = evaluate_policy(env, policy, 3, 7, 4)
+    for record in hook.results:
+        assert {k: record[k] for k in want} == want
+    names = {n for n, _, _ in trainer.logger.scalars}
+    assert {"eval/success_once", "eval/success_at_end", "eval/return", "eval/episodes"} <= names
+    assert [s for n, _, s in trainer.logger.scalars if n == "eval/return"] == [100, 230, 250]
+    hook.close()
+    assert not env.is_closed  # an env handed over is the caller's
+    env.close()
+
+
+def test_success_rate_evaluation_needs_episode_metrics():
+    env = make_env("PushCube-v1", num_envs=2, obs_mode="state", metrics=False, max_episode_steps=4)
+    hook = SuccessRateEvaluation(lambda: env, interval=0, episodes=2)
+    hook.register(_Trainer())
+    try:
+        with pytest.raises(ValueError, match="EpisodeMetrics"):
+            hook.evaluate()
+    finally:
+        env.close()
+
+
+def test_success_rate_evaluation_max_steps_counts_agent_steps():
+    """The episode length is the base env's time limit divided by an ActionRepeat's repeat."""
+    env = make_env("PushCube-v1", num_envs=2, ignore_terminations=True, repeat=3, obs_mode="state")
+    try:
+        assert SuccessRateEvaluation(env)._max_steps(env) == math.ceil(50 / 3)
+        assert SuccessRateEvaluation(env, max_steps=4)._max_steps(env) == 4
+    finally:
+        env.close()
+
+
+def test_keep_random_frames_without_a_buffer_op_says_so():
+    with pytest.raises(ValueError, match="extend"):
+        KeepRandomFrames().register(type("T", (), {"_pre_epoch_ops": []})())
+
+
+def test_exclude_keys_config_takes_nested_keys():
+    transform = instantiate(OmegaConf.structured(configs.ExcludeKeysConfig(exclude_keys=["a", ["next", "a"]])))
+    assert isinstance(transform, ExcludeTransform)
+    data = TensorDict({"a": 0, "b": 1, "next": {"a": 0, "b": 1}}, [])
+    assert set(transform(data).keys(True, True)) == {"b", ("next", "b")}

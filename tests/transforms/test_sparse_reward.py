@@ -1,0 +1,54 @@
+"""``SparseReward``: ManiSkill's sparse reward (``success - fail``) written from the step's infos,
+on stored data and on an env, equal to what ManiSkill's ``reward_mode="sparse"`` gives."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.envs import TransformedEnv
+
+from maniskill_torchrl import ManiSkillEnv
+from maniskill_torchrl.testing import assert_tensordict_equal
+from maniskill_torchrl.transforms import SparseReward
+
+
+def test_stored_transitions_get_success_minus_fail():
+    steps = TensorDict(
+        {
+            "next": {
+                "success": torch.tensor([False, True, True, False]),
+                "fail": torch.tensor([False, False, True, True]),
+                "reward": torch.full((4, 1), 7.0),  # a dense reward the file recorded: replaced
+            }
+        },
+        [4],
+    )
+    out = SparseReward()(steps)
+    assert out["next", "reward"].dtype == torch.float32
+    assert out["next", "reward"].tolist() == [[0.0], [1.0], [0.0], [-1.0]]
+
+
+def test_one_info_is_enough_and_none_is_an_error():
+    only_success = TensorDict({"next": {"success": torch.tensor([True, False])}}, [2])
+    assert SparseReward()(only_success)["next", "reward"].tolist() == [[1.0], [0.0]]
+    only_fail = TensorDict({"next": {"fail": torch.tensor([True])}}, [1])
+    assert SparseReward()(only_fail)["next", "reward"].tolist() == [[-1.0]]
+    with pytest.raises(KeyError, match="success"):
+        SparseReward()(TensorDict({"next": {"done": torch.zeros(2, 1, dtype=torch.bool)}}, [2]))
+
+
+def test_on_a_dense_env_it_gives_maniskills_sparse_reward():
+    """A dense-reward env with the transform steps as the same env made with reward_mode="sparse"."""
+    rollouts = []
+    for reward_mode, transform in (("normalized_dense", SparseReward()), ("sparse", None)):
+        env = ManiSkillEnv("PushCube-v1", obs_mode="state", sim_backend="physx_cpu", reward_mode=reward_mode)
+        env = TransformedEnv(env, transform) if transform is not None else env
+        env.set_seed(0)
+        torch.manual_seed(0)
+        try:
+            rollouts.append(env.rollout(5, break_when_any_done=False))
+        finally:
+            env.close()
+    got, want = rollouts
+    assert_tensordict_equal(got, want)
