@@ -53,6 +53,7 @@ _TESTS = Path(__file__).resolve().parent
 # end together.
 SLOW_FIRST = (
     "examples/test_examples.py",  # 75
+    "examples/test_trainers.py",  # 70
     "examples/test_evaluate.py",  # 55
     "wrappers/test_wrappers.py",  # 71
     "envs/test_env.py",  # 63
