@@ -29,8 +29,10 @@ class SuccessRateEvaluation(TrainerHookBase):
     ``<prefix>/episodes``, ``<prefix>/seconds``).
 
     Args:
-        create_env_fn: the evaluation env, or a callable that builds it (built at the first
-            evaluation, closed when training ends; a Hydra env node with ``_partial_: true``). It
+        create_env_fn: the evaluation env, or a callable that builds it (called at the first
+            evaluation; what it built is closed when training ends). A Hydra env node with
+            ``_partial_: true`` is such a callable (Hydra builds its nested nodes, the base env
+            among them, when the config is instantiated). It
             runs each episode to the time limit and scores it: a batched env whose transforms end
             in ``IgnoreTerminations`` then ``EpisodeMetrics``, e.g.
             ``make_env(env_id, num_envs=2, ignore_terminations=True)``. Its batch is the number

@@ -415,6 +415,9 @@ def test_success_rate_evaluation_runs_seeded_episodes():
     assert [s for n, _, s in trainer.logger.scalars if n == "eval/return"] == [100, 230, 250]
     hook.close()
     assert not env.is_closed  # an env handed over is the caller's
+    at_start, first = _Trainer(), SuccessRateEvaluation(env, at_start=True)
+    first.register(at_start)
+    assert at_start.ops[-1] == ("setup", first.evaluate)  # once more before training
     env.close()
 
 
