@@ -2,9 +2,10 @@
 built (``builder-inited``), into ``docs/_generated/curves/`` (git-ignored; no image is in git).
 
 - the learning curves: ``benchmarks/ppo/pullcube_cpu_30min.csv`` (PPO, PullCube-v1),
-  ``benchmarks/sac/pushcube_ee_b256.csv`` (SAC, PushCube-v1), ``benchmarks/bc/mlp_1000demos.csv``
-  (behaviour cloning). They are drawn by ``benchmarks/plot_ppo.py`` and ``benchmarks/plot_runs.py``,
-  the scripts that plot a run's ``metrics.jsonl``: each CSV row becomes one record of such a log;
+  ``benchmarks/sac/pushcube_ee_b256.csv`` and ``pushcube_sactrainer.csv`` (SAC, PushCube-v1),
+  ``benchmarks/bc/mlp_1000demos.csv`` (behaviour cloning). They are drawn by ``benchmarks/plot_ppo.py``
+  and ``benchmarks/plot_runs.py``, the scripts that plot a run's ``metrics.jsonl``: each CSV row becomes
+  one record of such a log;
 - the collection figures, frames/s against N, this library against gym:
   ``benchmarks/collection/sweep_2cores.csv`` and ``benchmarks/collection/sweep_16cores_h200.csv``
   (the tables of ``benchmarks/RESULTS.md``, copied), and ``benchmarks/collection/many_cores_emulated.csv``
@@ -96,11 +97,17 @@ def draw_ppo(out: Path, tmp: Path) -> Path:
 def draw_sac(out: Path, tmp: Path) -> Path:
     from benchmarks import plot_runs
 
-    rows = read_csv(ROOT / "benchmarks" / "sac" / "pushcube_ee_b256.csv")
-    log = _write_jsonl([{**r, "episodes": RL_EVAL_EPISODES} for r in rows], tmp / "sac.jsonl")
+    runs = []
+    for label, name in (
+        ("examples/sac_torchrl.py", "pushcube_ee_b256"),
+        ("TorchRL's SACTrainer", "pushcube_sactrainer"),
+    ):
+        rows = read_csv(ROOT / "benchmarks" / "sac" / f"{name}.csv")
+        log = _write_jsonl([{**r, "episodes": RL_EVAL_EPISODES} for r in rows], tmp / f"{name}.jsonl")
+        runs.append(f"{label}={log}")
     png = out / "sac_pushcube.png"
-    title = "SAC on PushCube-v1 (pd_ee_delta_pos, batch 256), CPU sim, 2 cores, 2026-11-25"
-    fig = _quiet(plot_runs.main, [f"SAC={log}", "--out", str(png), "--title", title])
+    title = "SAC on PushCube-v1 (pd_ee_delta_pos, batch 256), CPU sim, 2 cores"
+    fig = _quiet(plot_runs.main, [*runs, "--out", str(png), "--title", title])
     # plot_runs labels its axes for RL and BC runs together: this picture is one RL run.
     for ax in fig.axes[0::2]:
         ax.set_xlabel("frames (env steps)")
