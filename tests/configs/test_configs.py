@@ -14,7 +14,6 @@ import pytest
 import torch
 from hydra.core.config_store import ConfigStore
 from hydra.utils import instantiate
-from mani_skill.utils.wrappers import RecordEpisode
 from omegaconf import OmegaConf
 from torchrl.envs import TransformedEnv
 from torchrl.trainers.algorithms.configs import ComposeConfig, TransformedEnvConfig
@@ -24,7 +23,7 @@ from maniskill_torchrl import ManiSkillEnv
 from maniskill_torchrl.data import ManiSkillExperienceReplay
 from maniskill_torchrl.testing import assert_tensordict_equal
 from maniskill_torchrl.transforms import ActionRepeat, EpisodeMetrics, IgnoreTerminations
-from support.helpers import make_gym_env, random_actions
+from support.helpers import make_gym_env, record_episodes
 
 ROOT = Path(__file__).resolve().parents[2]
 TASK = "PickCube-v1"
@@ -94,17 +93,8 @@ def test_transform_configs_build_the_transforms():
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory):
     """ManiSkill's RecordEpisode file of two seeded episodes (nothing can be downloaded)."""
-    out = tmp_path_factory.mktemp("demo")
     env = make_gym_env(TASK, obs_mode="state", max_episode_steps=4)
-    rec = RecordEpisode(env, output_dir=str(out), trajectory_name="demo", save_video=False, record_reward=True)
-    try:
-        for seed in range(2):
-            rec.reset(seed=seed)
-            for action in random_actions(env.unwrapped.single_action_space, 4, seed=seed):
-                rec.step(action.unsqueeze(0))
-    finally:
-        rec.close()
-    return out / "demo.h5"
+    return record_episodes(env, tmp_path_factory.mktemp("demo"), seeds=range(2), lengths=4)
 
 
 def test_demonstration_configs(demo, tmp_path):

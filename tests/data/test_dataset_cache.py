@@ -11,12 +11,11 @@ import textwrap
 
 import pytest
 import torch
-from mani_skill.utils.wrappers import RecordEpisode
 from tensordict import TensorDict
 
 from maniskill_torchrl.data import ManiSkillExperienceReplay
 from maniskill_torchrl.testing import assert_tensordict_equal
-from support.helpers import make_gym_env, random_actions, start
+from support.helpers import make_gym_env, record_episodes, start
 
 TASK = "PickCube-v1"
 LIMIT = 4
@@ -26,17 +25,8 @@ LENGTHS = [LIMIT, 2]  # a truncated episode, then one cut short by close(): spli
 @pytest.fixture(scope="module")
 def demo(tmp_path_factory):
     """A RecordEpisode file of two seeded episodes of different lengths."""
-    out = tmp_path_factory.mktemp("demo")
     env = make_gym_env(TASK, obs_mode="state", max_episode_steps=LIMIT)
-    rec = RecordEpisode(env, output_dir=str(out), trajectory_name="demo", save_video=False, record_reward=True)
-    try:
-        for seed, n in enumerate(LENGTHS):
-            rec.reset(seed=seed)
-            for a in random_actions(env.unwrapped.single_action_space, n, seed=seed):
-                rec.step(a.unsqueeze(0))
-    finally:
-        rec.close()
-    return out / "demo.h5"
+    return record_episodes(env, tmp_path_factory.mktemp("demo"), seeds=range(len(LENGTHS)), lengths=LENGTHS)
 
 
 def _entries(root):

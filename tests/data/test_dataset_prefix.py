@@ -12,7 +12,6 @@ import shutil
 import mani_skill
 import pytest
 import torch
-from mani_skill.utils.wrappers import RecordEpisode
 from torchrl.data import OfflineToOnlineReplayBuffer
 from torchrl.data.datasets import load_dataset
 from torchrl.data.datasets.utils import _DATASET_REGISTRY, _get_dataset_factory
@@ -20,7 +19,7 @@ from torchrl.data.datasets.utils import _DATASET_REGISTRY, _get_dataset_factory
 import maniskill_torchrl.data
 from maniskill_torchrl.data import ManiSkillExperienceReplay, load_maniskill_dataset
 from maniskill_torchrl.testing import assert_tensordict_equal
-from support.helpers import make_gym_env, random_actions
+from support.helpers import make_gym_env, record_episodes
 
 TASK = "PickCube-v1"
 LIMIT = 3
@@ -35,17 +34,8 @@ RGB_JOINT = "trajectory.rgb.pd_joint_delta_pos.physx_cpu.h5"
 def demo(tmp_path_factory):
     """A RecordEpisode file of two seeded episodes; its .json records obs_mode "state" and
     control_mode "pd_joint_delta_pos" (the env's gym.make arguments)."""
-    out = tmp_path_factory.mktemp("recorded")
     env = make_gym_env(TASK, obs_mode="state", control_mode="pd_joint_delta_pos", max_episode_steps=LIMIT)
-    rec = RecordEpisode(env, output_dir=str(out), trajectory_name="demo", save_video=False, record_reward=True)
-    try:
-        for seed in range(EPISODES):
-            rec.reset(seed=seed)
-            for a in random_actions(env.unwrapped.single_action_space, LIMIT, seed=seed):
-                rec.step(a.unsqueeze(0))
-    finally:
-        rec.close()
-    return out / "demo.h5"
+    return record_episodes(env, tmp_path_factory.mktemp("recorded"), seeds=range(EPISODES), lengths=LIMIT)
 
 
 @pytest.fixture(scope="module")

@@ -15,7 +15,6 @@ import h5py
 import pytest
 import torch
 from mani_skill.trajectory.dataset import ManiSkillTrajectoryDataset
-from mani_skill.utils.wrappers import RecordEpisode
 from torchrl.data.replay_buffers import SliceSampler
 from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import step_mdp
@@ -24,7 +23,7 @@ from maniskill_torchrl import ManiSkillEnv, ManiSkillWrapper
 from maniskill_torchrl.data import ManiSkillExperienceReplay, save_trajectories
 from maniskill_torchrl.testing import assert_tensordict_equal
 from maniskill_torchrl.transforms import EnvStates
-from support.helpers import TIMEOUT_S, make_gym_env, random_actions
+from support.helpers import TIMEOUT_S, make_gym_env, random_actions, record_episodes
 
 TASK = "PickCube-v1"
 STEPS = 6  # the time limit: every episode truncates there
@@ -58,15 +57,7 @@ def recorded(request, tmp_path_factory):
             # turns ManiSkill's -0.0 quaternion components into +0.0.
             steps.append(td.apply(torch.Tensor.clone))
             td = step_mdp(td)
-    rec = RecordEpisode(
-        env, output_dir=str(out), save_trajectory=True, trajectory_name="demo", save_video=False, record_reward=True
-    )
-    for seed, episode in zip(SEEDS, actions):
-        rec.reset(seed=seed)
-        for a in episode:
-            rec.step(a.unsqueeze(0))
-    rec.close()
-    return out / "demo.h5", request.param, torch.stack(steps)
+    return record_episodes(env, out, SEEDS, STEPS), request.param, torch.stack(steps)
 
 
 def test_loads_as_the_env_steps(recorded, tmp_path):
@@ -147,13 +138,7 @@ def test_a_file_without_observations_is_refused(tmp_path):
     """RecordEpisode(obs_mode="none") writes an empty obs group: refused as a file without
     observations, with the way to add them."""
     env = make_gym_env(TASK, obs_mode="none", max_episode_steps=STEPS)
-    rec = RecordEpisode(env, output_dir=str(tmp_path), trajectory_name="none", save_video=False)
-    try:
-        rec.reset(seed=SEEDS[0])
-        for a in _actions(env.unwrapped.single_action_space)[0]:
-            rec.step(a.unsqueeze(0))
-    finally:
-        rec.close()
+    record_episodes(env, tmp_path, SEEDS[:1], STEPS, name="none")
     with h5py.File(tmp_path / "none.h5") as f:
         assert len(f["traj_0"]["obs"]) == 0  # the case: an obs group, empty
     with pytest.raises(ValueError, match=r"no observations.*replay_trajectory --traj-path .*none.h5 -o state"):
@@ -251,12 +236,7 @@ def test_saved_time_limit_is_the_envs(tmp_path, num_envs):
     RecordEpisode file (limit in env_info only) loads with the limit in env_kwargs as well."""
     limit = STEPS + 2  # not the task's registered 50
     raw = make_gym_env(TASK, obs_mode="state", max_episode_steps=limit)
-    rec = RecordEpisode(raw, output_dir=str(tmp_path), trajectory_name="theirs", save_video=False)
-    try:
-        rec.reset(seed=SEEDS[0])
-        rec.step(_actions(raw.unwrapped.single_action_space)[0][0].unsqueeze(0))
-    finally:
-        rec.close()
+    record_episodes(raw, tmp_path, SEEDS[:1], 1, name="theirs")
     theirs = json.loads((tmp_path / "theirs.json").read_text())["env_info"]["max_episode_steps"]
     assert theirs == limit
 

@@ -22,7 +22,6 @@ from hydra import compose, initialize_config_dir
 from hydra.core.config_store import ConfigStore
 from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import instantiate
-from mani_skill.utils.wrappers import RecordEpisode
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 from torchrl.envs import Compose, ExcludeTransform, TransformedEnv
@@ -36,7 +35,7 @@ from maniskill_torchrl.pipeline import make_env
 from maniskill_torchrl.testing import assert_tensordict_equal
 from maniskill_torchrl.trainer_hooks import KeepRandomFrames, LogEpisodeMetrics, SuccessRateEvaluation
 from maniskill_torchrl.transforms import EpisodeMetrics, IgnoreTerminations
-from support.helpers import make_gym_env, random_actions
+from support.helpers import make_gym_env, record_episodes
 
 ROOT = Path(__file__).resolve().parents[2]
 TRAINERS = ROOT / "examples" / "trainers"
@@ -124,17 +123,8 @@ def demo(tmp_path_factory):
     """A ManiSkill trajectory file of PickCube-v1 in the RLPD config's modes (RecordEpisode, three
     seeded episodes of 8 random steps), recorded with the dense reward: the config must train on
     the sparse one (nothing can be downloaded)."""
-    out = tmp_path_factory.mktemp("demo")
     env = make_gym_env("PickCube-v1", obs_mode="state", control_mode="pd_joint_delta_pos", max_episode_steps=8)
-    rec = RecordEpisode(env, output_dir=str(out), trajectory_name="demo", save_video=False, record_reward=True)
-    try:
-        for seed in range(3):
-            rec.reset(seed=seed)
-            for action in random_actions(env.unwrapped.single_action_space, 8, seed=seed):
-                rec.step(action.unsqueeze(0))
-    finally:
-        rec.close()
-    return out / "demo.h5"
+    return record_episodes(env, tmp_path_factory.mktemp("demo"), seeds=range(3), lengths=8)
 
 
 # ------------------------------------------------------------------------------ the YAMLs

@@ -1,7 +1,7 @@
 """Helpers shared by the test files (imported as ``helpers``; pytest puts ``tests/`` on the path).
 
 - making ManiSkill envs and reproducible actions: :func:`make_gym_env`, :func:`random_actions`;
-  closing many at once: :func:`close_envs`;
+  closing many at once: :func:`close_envs`; demonstration files: :func:`record_episodes`;
 - comparing bit for bit: :func:`assert_same`, :func:`bits`, :func:`clone_tree`, :func:`tensor_infos`;
 - running what users run as subprocesses: :func:`run`, :func:`start` (to wait later),
   :data:`ROOT`, :data:`EXAMPLES`, :data:`TIMEOUT_S`;
@@ -17,7 +17,7 @@ import struct
 import subprocess
 import sys
 import tempfile
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 from unittest import mock
@@ -80,6 +80,36 @@ def random_actions(space: gym.Space, n: int, seed: int = 0) -> list:
         return low + (high - low) * torch.rand(sp.shape, generator=g)
 
     return [one(space) for _ in range(n)]
+
+
+def record_episodes(
+    env: gym.Env,
+    out: Path,
+    seeds: Sequence[int],
+    lengths: int | Sequence[int],
+    *,
+    action_seeds: Sequence[int] | None = None,
+    name: str = "demo",
+) -> Path:
+    """Records seeded episodes of random actions with ManiSkill's ``RecordEpisode`` into ``out``
+    and returns the ``.h5`` path (tests make their own demonstrations: nothing can be downloaded).
+
+    Episode ``i`` resets ``env`` with ``seeds[i]`` and takes ``lengths[i]`` actions (``lengths`` if
+    an int) from :func:`random_actions` with ``action_seeds[i]`` (default: the reset seed). Closes
+    ``env``, which writes the file."""
+    from mani_skill.utils.wrappers import RecordEpisode
+
+    lengths = [lengths] * len(seeds) if isinstance(lengths, int) else list(lengths)
+    action_seeds = list(seeds) if action_seeds is None else list(action_seeds)
+    rec = RecordEpisode(env, output_dir=str(out), trajectory_name=name, save_video=False, record_reward=True)
+    try:
+        for seed, n, action_seed in zip(seeds, lengths, action_seeds, strict=True):
+            rec.reset(seed=seed)
+            for action in random_actions(env.unwrapped.single_action_space, n, seed=action_seed):
+                rec.step(action.unsqueeze(0))
+    finally:
+        rec.close()
+    return out / f"{name}.h5"
 
 
 # ----------------------------------------------------------------------------- data

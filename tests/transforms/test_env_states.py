@@ -14,14 +14,13 @@ from __future__ import annotations
 
 import pytest
 import torch
-from mani_skill.utils.wrappers import RecordEpisode
 from torchrl.envs import Compose, TransformedEnv
 
 from maniskill_torchrl import EpisodeMetrics, ManiSkillEnv
 from maniskill_torchrl.data import ManiSkillExperienceReplay
 from maniskill_torchrl.testing import assert_tensordict_equal
 from maniskill_torchrl.transforms import CPUUnbatch, EnvStates
-from support.helpers import close_envs, make_gym_env, random_actions
+from support.helpers import close_envs, make_gym_env, record_episodes
 from support.toy_env import ToyEnv
 
 STEPS = 12
@@ -181,14 +180,8 @@ def pick_cube_file(tmp_path_factory):
     """One seeded PickCube-v1 episode recorded by ManiSkill's RecordEpisode, loaded."""
     out = tmp_path_factory.mktemp("states")
     env = make_gym_env("PickCube-v1", obs_mode="state", max_episode_steps=6)
-    rec = RecordEpisode(env, output_dir=str(out), trajectory_name="demo", save_video=False)
-    try:
-        rec.reset(seed=3)
-        for a in random_actions(env.unwrapped.single_action_space, 6, seed=1):
-            rec.step(a.unsqueeze(0))
-    finally:
-        rec.close()
-    return ManiSkillExperienceReplay(out / "demo.h5", 2, root=out / "cache")[:]
+    path = record_episodes(env, out, seeds=[3], lengths=6, action_seeds=[1])
+    return ManiSkillExperienceReplay(path, 2, root=out / "cache")[:]
 
 
 @pytest.mark.parametrize(
