@@ -1,8 +1,10 @@
 """Sphinx extension: draws the pictures of ``docs/curves.md`` from the data in git when the site is
 built (``builder-inited``), into ``docs/_generated/curves/`` (git-ignored; no image is in git).
 
-- the learning curves: ``benchmarks/ppo/pullcube_cpu_30min.csv`` (PPO, PullCube-v1),
-  ``benchmarks/sac/pushcube_ee_b256.csv`` and ``pushcube_sactrainer.csv`` (SAC, PushCube-v1),
+- the learning curves: ``benchmarks/ppo/pullcube_cpu_30min.csv`` (PPO, PullCube-v1)
+  and ``pullcube_ppotrainer.csv`` (TorchRL's PPOTrainer), ``benchmarks/sac/pushcube_ee_b256.csv`` and
+  ``pushcube_sactrainer.csv`` (SAC, PushCube-v1), ``benchmarks/rlpd/pickcube_offline_to_online.csv``
+  (RLPD through TorchRL's OfflineToOnlineTrainer, PickCube-v1),
   ``benchmarks/bc/mlp_1000demos.csv`` (behaviour cloning). They are drawn by ``benchmarks/plot_ppo.py``
   and ``benchmarks/plot_runs.py``, the scripts that plot a run's ``metrics.jsonl``: each CSV row becomes
   one record of such a log;
@@ -94,28 +96,67 @@ def draw_ppo(out: Path, tmp: Path) -> Path:
     return png
 
 
-def draw_sac(out: Path, tmp: Path) -> Path:
+def _draw_rl_runs(out: Path, tmp: Path, png_name: str, runs: list[tuple[str, str]], title: str):
+    """RL runs side by side, one evaluation per CSV row (``runs``: label, CSV under benchmarks/),
+    drawn by plot_runs; returns the figure, still open, for the caller's touches."""
     from benchmarks import plot_runs
 
-    runs = []
-    for label, name in (
-        ("examples/sac_torchrl.py", "pushcube_ee_b256"),
-        ("TorchRL's SACTrainer", "pushcube_sactrainer"),
-    ):
-        rows = read_csv(ROOT / "benchmarks" / "sac" / f"{name}.csv")
-        log = _write_jsonl([{**r, "episodes": RL_EVAL_EPISODES} for r in rows], tmp / f"{name}.jsonl")
-        runs.append(f"{label}={log}")
-    png = out / "sac_pushcube.png"
-    title = "SAC on PushCube-v1 (pd_ee_delta_pos, batch 256), CPU sim, 2 cores"
-    fig = _quiet(plot_runs.main, [*runs, "--out", str(png), "--title", title])
-    # plot_runs labels its axes for RL and BC runs together: this picture is one RL run.
+    specs = []
+    for label, name in runs:
+        rows = read_csv(ROOT / "benchmarks" / f"{name}.csv")
+        log = _write_jsonl([{**r, "episodes": RL_EVAL_EPISODES} for r in rows], tmp / f"{Path(name).name}.jsonl")
+        specs.append(f"{label}={log}")
+    fig = _quiet(plot_runs.main, [*specs, "--out", str(out / png_name), "--title", title])
+    # plot_runs labels its axes for RL and BC runs together: these are RL runs.
     for ax in fig.axes[0::2]:
         ax.set_xlabel("frames (env steps)")
         _thousands(ax)
     fig.axes[0].set_ylabel(f"success_once ({RL_EVAL_EPISODES} seeded episodes)")
     fig.axes[2].set_ylabel("episode return (deterministic policy)")
-    fig.savefig(png, dpi=90)
-    return png
+    return fig
+
+
+def _target(fig, level: float = 0.8) -> None:
+    """The issue's success_once target, dotted, on both success axes."""
+    for ax in fig.axes[:2]:
+        ax.axhline(level, color="grey", ls=":", lw=1)
+
+
+def draw_sac(out: Path, tmp: Path) -> Path:
+    runs = [("examples/sac_torchrl.py", "sac/pushcube_ee_b256"), ("TorchRL's SACTrainer", "sac/pushcube_sactrainer")]
+    title = "SAC on PushCube-v1 (pd_ee_delta_pos, batch 256), CPU sim, 2 cores"
+    fig = _draw_rl_runs(out, tmp, "sac_pushcube.png", runs, title)
+    fig.savefig(out / "sac_pushcube.png", dpi=90)
+    return out / "sac_pushcube.png"
+
+
+def draw_ppo_trainer(out: Path, tmp: Path) -> Path:
+    runs = [("examples/ppo_torchrl.py", "ppo/pullcube_cpu_30min"), ("TorchRL's PPOTrainer", "ppo/pullcube_ppotrainer")]
+    title = "PPO on PullCube-v1 (pd_ee_delta_pos), CPU sim, 2 cores"
+    fig = _draw_rl_runs(out, tmp, "ppo_pullcube_trainer.png", runs, title)
+    _target(fig)
+    fig.savefig(out / "ppo_pullcube_trainer.png", dpi=90)
+    return out / "ppo_pullcube_trainer.png"
+
+
+def draw_rlpd(out: Path, tmp: Path) -> Path:
+    runs = [("TorchRL's OfflineToOnlineTrainer", "rlpd/pickcube_offline_to_online")]
+    title = "RLPD on PickCube-v1 (sparse reward, 200 demos), CPU sim, 2 cores"
+    fig = _draw_rl_runs(out, tmp, "rlpd_pickcube.png", runs, title)
+    _target(fig)
+    # ManiSkill's RLPD README: PickCube-v1 in "around 50K" env samples with its sample-efficient config
+    # (UTD 16, 10 critics, 1000 RL demos); this run is its walltime config's (UTD 0.5, 200k frames).
+    fig.axes[0].axvline(50_000, color="grey", ls="--", lw=1)
+    fig.axes[0].annotate(
+        "ManiSkill's ~50k\n(sample-efficient config)",
+        (50_000, 0.5),
+        xytext=(4, 0),
+        textcoords="offset points",
+        fontsize=8,
+    )
+    fig.suptitle(f"{title}: every 10,000 frames; dotted: the 0.8 target")
+    fig.savefig(out / "rlpd_pickcube.png", dpi=90)
+    return out / "rlpd_pickcube.png"
 
 
 def draw_bc(out: Path, tmp: Path) -> Path:
@@ -280,7 +321,7 @@ def draw_all(out_dir: Path) -> list[Path]:
     out_dir.mkdir(parents=True, exist_ok=True)
     pngs = []
     with tempfile.TemporaryDirectory(prefix="maniskill_torchrl_curves_") as tmp:
-        for draw in (draw_ppo, draw_sac, draw_bc):
+        for draw in (draw_ppo, draw_sac, draw_rlpd, draw_bc):
             pngs.append(draw(out_dir, Path(tmp)))
             plt.close("all")
     data = ROOT / "benchmarks" / "collection"

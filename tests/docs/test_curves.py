@@ -31,6 +31,7 @@ def test_every_picture_drawn(pngs):
     assert names == {
         "ppo_pullcube.png",
         "sac_pushcube.png",
+        "rlpd_pickcube.png",
         "bc.png",
         "collection_2cores.png",
         "collection_16cores.png",
