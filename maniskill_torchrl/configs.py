@@ -21,6 +21,7 @@ group              name                         node
 ``hook``           ``success_rate_evaluation``  :class:`SuccessRateEvaluationConfig`
 ``hook``           ``log_episode_metrics``      :class:`LogEpisodeMetricsConfig`
 ``hook``           ``keep_random_frames``       :class:`KeepRandomFramesConfig`
+``network``        ``ppo_mlp``                  :class:`PPOMLPConfig`
 =================  ===========================  ==========================================
 
 and the ``maniskill:`` prefix of :func:`torchrl.data.datasets.load_dataset`. It needs
@@ -48,6 +49,7 @@ from omegaconf import MISSING  # noqa: E402
 from torchrl.trainers.algorithms.configs.data import ReplayBufferBaseConfig  # noqa: E402
 from torchrl.trainers.algorithms.configs.envs_libs import EnvLibsConfig  # noqa: E402
 from torchrl.trainers.algorithms.configs.hooks import HookConfig  # noqa: E402
+from torchrl.trainers.algorithms.configs.modules import MLPConfig  # noqa: E402
 from torchrl.trainers.algorithms.configs.transforms import TransformConfig  # noqa: E402
 
 import maniskill_torchrl.data  # noqa: E402, F401  (registers the maniskill: dataset prefix)
@@ -63,6 +65,7 @@ __all__ = [
     "ManiSkillEnvConfig",
     "ManiSkillExperienceReplayConfig",
     "OfflineToOnlineReplayBufferConfig",
+    "PPOMLPConfig",
     "SparseRewardConfig",
     "SuccessRateEvaluationConfig",
 ]
@@ -181,6 +184,42 @@ def _make_exclude_transform(exclude_keys: Any = ()) -> Any:
 
     keys = [key if isinstance(key, str) else tuple(key) for key in exclude_keys]
     return ExcludeTransform(*keys)
+
+
+# ----------------------------------------------------------------------------- networks
+@dataclass
+class PPOMLPConfig(MLPConfig):
+    """TorchRL's :class:`~torchrl.modules.MLP` as ManiSkill's PPO baseline builds its actor and
+    critic (``examples/ppo_torchrl.py`` too): the last layer initialised orthogonally with gain
+    ``last_layer_std`` and a zero bias, and, for the actor, a learnt state-independent scale
+    (``state_independent_scale``: its initial log, e.g. -0.5) after it, through tensordict's
+    :class:`~tensordict.nn.AddStateIndependentNormalScale`. The network then returns
+    ``(loc, scale)``: a ``tanh_normal`` model takes it with ``extract_normal_params: false``.
+    TorchRL 0.14.1's ``tanh_normal`` model has a state-dependent scale only (noted for upstream);
+    with it, the PPO YAML's policy diverged (NaN actions at 85,000 frames, issue 53)."""
+
+    last_layer_std: float | None = None
+    state_independent_scale: float | None = None
+    _target_: str = "maniskill_torchrl.configs._make_ppo_mlp"
+
+
+def _make_ppo_mlp(
+    *, last_layer_std: float | None = None, state_independent_scale: float | None = None, **mlp_kwargs: Any
+) -> Any:
+    import torch
+    from tensordict.nn import AddStateIndependentNormalScale
+    from torchrl.modules import MLP
+
+    mlp = MLP(**mlp_kwargs)
+    if last_layer_std is not None:
+        last = [m for m in mlp.modules() if isinstance(m, torch.nn.Linear)][-1]
+        with torch.no_grad():
+            torch.nn.init.orthogonal_(last.weight, last_layer_std)
+            last.bias.zero_()
+    if state_independent_scale is None:
+        return mlp
+    scale = AddStateIndependentNormalScale(mlp_kwargs["out_features"], init_value=state_independent_scale)
+    return torch.nn.Sequential(mlp, scale)
 
 
 # ----------------------------------------------------------------------------- demonstrations
@@ -326,6 +365,7 @@ def _register_configs() -> None:
     cs.store(group="hook", name="success_rate_evaluation", node=SuccessRateEvaluationConfig)
     cs.store(group="hook", name="log_episode_metrics", node=LogEpisodeMetricsConfig)
     cs.store(group="hook", name="keep_random_frames", node=KeepRandomFramesConfig)
+    cs.store(group="network", name="ppo_mlp", node=PPOMLPConfig)
 
 
 _register_configs()

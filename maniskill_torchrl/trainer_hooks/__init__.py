@@ -34,8 +34,8 @@ Other gaps, met in the configs (noted for upstream; the guide lists them too):
   reaches ``MLP`` as a ``DictConfig``, which it reads as a list; ``TanhNormalModelConfig``'s key
   defaults do not apply to a node from the ``ConfigStore``.
 - The ``tanh_normal`` model has a state-dependent scale only (ManiSkill's PPO learns a
-  state-independent log std); ``SACLoss`` always backs up the entropy (ManiSkill's RLPD:
-  ``backup_entropy: False``).
+  state-independent log std: the library's ``network/ppo_mlp`` node); ``SACLoss`` always backs
+  up the entropy (ManiSkill's RLPD: ``backup_entropy: False``).
 - With ``optim_steps_per_batch: null``, ``optim_steps`` counts the sampler's end as a step.
 - The CPU engine's ``num_envs`` needs nothing: ``env: maniskill`` with ``num_envs: N`` is one
   batched env (one process per sub-env on the CPU sim) that TorchRL's ``sync`` collector drives.

@@ -199,6 +199,51 @@ def test_config_env_is_maniskill_env(name):
     assert_tensordict_equal(got[0], want[0])
 
 
+def test_ppo_models_are_the_scripts():
+    """The PPO YAML's actor and critic (the library's ``ppo_mlp`` network) are
+    ``examples/ppo_torchrl.py``'s, ManiSkill's PPO baseline: initialised as the script does (a
+    learnt state-independent log std of -0.5, last layers orthogonal with gain 0.01 / 1.0 and zero
+    bias), and with the script's parameters loaded they compute its actions, log-probabilities and
+    values bit for bit."""
+    from tensordict.nn import AddStateIndependentNormalScale
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    cfg = _compose("ppo_pullcube")
+    policy, value = instantiate(cfg.models.policy_model), instantiate(cfg.models.value_model)
+    for module, gain in ((policy, 0.01), (value, 1.0)):
+        last = [m for m in module.modules() if isinstance(m, torch.nn.Linear)][-1]
+        eye = torch.eye(last.weight.shape[0])
+        torch.testing.assert_close(last.weight @ last.weight.T, gain**2 * eye, rtol=0, atol=1e-5)
+        assert not last.bias.any()
+    (scale,) = [m for m in policy.modules() if isinstance(m, AddStateIndependentNormalScale)]
+    assert scale.state_independent_scale.eq(-0.5).all()
+
+    make_models = runpy.run_path(str(ROOT / "examples" / "ppo_torchrl.py"))["make_models"]
+    env = ManiSkillEnv("PullCube-v1", obs_mode="state", control_mode="pd_ee_delta_pos")
+    try:
+        theirs = make_models(env, 256, torch.device("cpu"))
+        td = env.reset(seed=0)
+    finally:
+        env.close()
+    with torch.no_grad():
+        for mine, script in ((policy, theirs[0]), (value, theirs[1])):
+            for p, q in zip(mine.parameters(), script.parameters(), strict=True):
+                p.copy_(q)
+    outputs = []
+    for actor, critic in ((policy, value), theirs):
+        torch.manual_seed(0)  # the same sampled action
+        out = critic(actor(td.clone()))
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            out["mode"] = actor(td.clone())["action"]
+        outputs.append(out.select("action", "action_log_prob", "state_value", "mode"))
+    assert outputs[0]["action"].ne(outputs[0]["mode"]).any()  # a sample, not the mode
+    # TanhNormal's bounds: scalars here (the model's default, [-1, 1]), the action spec's tensors
+    # there; its log-probability then differs in the last bits (float32 rounding), nothing else does.
+    mine, script = (out.pop("action_log_prob") for out in outputs)
+    torch.testing.assert_close(mine, script, rtol=1e-6, atol=0)
+    assert_tensordict_equal(*outputs)
+
+
 # ----------------------------------------------------------------------------- training
 def _run_train_py(name, overrides, run_dir, monkeypatch):
     """``python examples/trainers/train.py --config-name <name> <overrides>`` in this process; returns
