@@ -321,7 +321,7 @@ def draw_all(out_dir: Path) -> list[Path]:
     out_dir.mkdir(parents=True, exist_ok=True)
     pngs = []
     with tempfile.TemporaryDirectory(prefix="maniskill_torchrl_curves_") as tmp:
-        for draw in (draw_ppo, draw_sac, draw_rlpd, draw_bc):
+        for draw in (draw_ppo, draw_ppo_trainer, draw_sac, draw_rlpd, draw_bc):
             pngs.append(draw(out_dir, Path(tmp)))
             plt.close("all")
     data = ROOT / "benchmarks" / "collection"

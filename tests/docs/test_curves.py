@@ -30,6 +30,7 @@ def test_every_picture_drawn(pngs):
     names = {p.name for p in pngs}
     assert names == {
         "ppo_pullcube.png",
+        "ppo_pullcube_trainer.png",
         "sac_pushcube.png",
         "rlpd_pickcube.png",
         "bc.png",
