@@ -218,7 +218,9 @@ def _make_ppo_mlp(
             last.bias.zero_()
     if state_independent_scale is None:
         return mlp
-    scale = AddStateIndependentNormalScale(mlp_kwargs["out_features"], init_value=state_independent_scale)
+    scale = AddStateIndependentNormalScale(
+        mlp_kwargs["out_features"], init_value=state_independent_scale, device=mlp_kwargs.get("device")
+    )
     return torch.nn.Sequential(mlp, scale)
 
 

@@ -11,7 +11,6 @@ import sys
 from pathlib import Path
 
 import pytest
-import torch
 from hydra.core.config_store import ConfigStore
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
@@ -23,7 +22,7 @@ from maniskill_torchrl import ManiSkillEnv
 from maniskill_torchrl.data import ManiSkillExperienceReplay
 from maniskill_torchrl.testing import assert_tensordict_equal
 from maniskill_torchrl.transforms import ActionRepeat, EpisodeMetrics, IgnoreTerminations
-from support.helpers import make_gym_env, record_episodes
+from support.helpers import make_gym_env, record_episodes, seeded_rollout
 
 ROOT = Path(__file__).resolve().parents[2]
 TASK = "PickCube-v1"
@@ -42,13 +41,8 @@ def _build(node):
     return instantiate(OmegaConf.structured(node))
 
 
-def _rollout(env, steps=6):
-    env.set_seed(3)
-    torch.manual_seed(3)
-    try:
-        return env.rollout(steps, break_when_any_done=False)
-    finally:
-        env.close()
+def _rollout(env):
+    return seeded_rollout(env, 6, seed=3)
 
 
 @pytest.mark.parametrize(("group", "name"), sorted(REGISTERED))
@@ -142,6 +136,17 @@ def test_upstream_config_is_this_class():
         return [ast.dump(a) for a in c.body if not (isinstance(a, ast.AnnAssign) and a.target.id == "_target_")]
 
     assert rest(cls) == rest(ours)
+
+
+def test_ppo_mlp_parameters_on_the_networks_device():
+    """The state-independent scale lives where the MLP does (``device: cuda`` on a GPU learner);
+    the meta device stands in for one here."""
+    node = configs.PPOMLPConfig(
+        in_features=5, out_features=3, num_cells=[8], device="meta", state_independent_scale=-0.5
+    )
+    net = _build(node)
+    assert {p.device.type for p in net.parameters()} == {"meta"}
+    assert len(list(net.parameters())) == 5  # two layers' weights and biases, and the scale
 
 
 def test_without_hydra_the_error_names_the_extra(monkeypatch):

@@ -35,7 +35,7 @@ from maniskill_torchrl.pipeline import make_env
 from maniskill_torchrl.testing import assert_tensordict_equal
 from maniskill_torchrl.trainer_hooks import KeepRandomFrames, LogEpisodeMetrics, SuccessRateEvaluation
 from maniskill_torchrl.transforms import EpisodeMetrics, IgnoreTerminations
-from support.helpers import make_gym_env, record_episodes
+from support.helpers import make_gym_env, record_episodes, seeded_rollout
 
 ROOT = Path(__file__).resolve().parents[2]
 TRAINERS = ROOT / "examples" / "trainers"
@@ -187,16 +187,9 @@ def test_config_env_is_maniskill_env(name):
         ManiSkillEnv(env_kwargs.pop("env_name"), **env_kwargs, sim_backend="physx_cpu", max_episode_steps=3),
         Compose(IgnoreTerminations(), EpisodeMetrics()),
     )
-    got, want = [], []
-    for e, out in ((env, got), (by_hand, want)):
-        e.set_seed(3)
-        torch.manual_seed(3)
-        try:
-            out.append(e.rollout(7, break_when_any_done=False))
-        finally:
-            e.close()
-    assert got[0]["next", "episode", "episode_len"].max() == 3  # episodes ended at the time limit
-    assert_tensordict_equal(got[0], want[0])
+    got, want = seeded_rollout(env, 7, seed=3), seeded_rollout(by_hand, 7, seed=3)
+    assert got["next", "episode", "episode_len"].max() == 3  # episodes ended at the time limit
+    assert_tensordict_equal(got, want)
 
 
 def test_ppo_models_are_the_scripts():

@@ -1,7 +1,8 @@
 """Helpers shared by the test files (imported as ``helpers``; pytest puts ``tests/`` on the path).
 
 - making ManiSkill envs and reproducible actions: :func:`make_gym_env`, :func:`random_actions`;
-  closing many at once: :func:`close_envs`; demonstration files: :func:`record_episodes`;
+  closing many at once: :func:`close_envs`; demonstration files: :func:`record_episodes`; seeded
+  rollouts: :func:`seeded_rollout`;
 - comparing bit for bit: :func:`assert_same`, :func:`bits`, :func:`clone_tree`, :func:`tensor_infos`;
 - running what users run as subprocesses: :func:`run`, :func:`start` (to wait later),
   :data:`ROOT`, :data:`EXAMPLES`, :data:`TIMEOUT_S`;
@@ -42,6 +43,17 @@ def make_gym_env(env_id: str = "PickCube-v1", **kwargs) -> gym.Env:
 
     kwargs.setdefault("num_envs", 1)
     return gym.make(env_id, **kwargs)
+
+
+def seeded_rollout(env: Any, steps: int, seed: int) -> TensorDictBase:
+    """``env.rollout(steps)`` through dones, with the env and torch seeded by ``seed`` (the random
+    actions too); closes ``env``. Two envs that must agree give equal rollouts."""
+    env.set_seed(seed)
+    torch.manual_seed(seed)
+    try:
+        return env.rollout(steps, break_when_any_done=False)
+    finally:
+        env.close()
 
 
 @pytest.fixture(name="envs")

@@ -11,6 +11,7 @@ from torchrl.envs import TransformedEnv
 from maniskill_torchrl import ManiSkillEnv
 from maniskill_torchrl.testing import assert_tensordict_equal
 from maniskill_torchrl.transforms import SparseReward
+from support.helpers import seeded_rollout
 
 
 def test_stored_transitions_get_success_minus_fail():
@@ -44,11 +45,6 @@ def test_on_a_dense_env_it_gives_maniskills_sparse_reward():
     for reward_mode, transform in (("normalized_dense", SparseReward()), ("sparse", None)):
         env = ManiSkillEnv("PushCube-v1", obs_mode="state", sim_backend="physx_cpu", reward_mode=reward_mode)
         env = TransformedEnv(env, transform) if transform is not None else env
-        env.set_seed(0)
-        torch.manual_seed(0)
-        try:
-            rollouts.append(env.rollout(5, break_when_any_done=False))
-        finally:
-            env.close()
+        rollouts.append(seeded_rollout(env, 5, seed=0))
     got, want = rollouts
     assert_tensordict_equal(got, want)
