@@ -132,9 +132,11 @@ class EpisodeMetricsConfig(TransformConfig):
 
 @dataclass
 class IgnoreTerminationsConfig(TransformConfig):
-    """:class:`~maniskill_torchrl.transforms.IgnoreTerminations`: episodes end at the time limit."""
+    """:class:`~maniskill_torchrl.transforms.IgnoreTerminations`: episodes end at the time limit
+    (``as_truncations: true``: at a termination too, as a truncation)."""
 
     in_keys: list[Any] | None = None
+    as_truncations: bool = False
     _target_: str = "maniskill_torchrl.transforms.IgnoreTerminations"
 
     def __post_init__(self) -> None:

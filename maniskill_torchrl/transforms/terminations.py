@@ -1,4 +1,4 @@
-"""Run every episode to its time limit: terminations are dropped."""
+"""Drop terminations: run every episode to its time limit, or end it there as a truncation."""
 
 from __future__ import annotations
 
@@ -42,10 +42,22 @@ class IgnoreTerminations(Transform):
     ``("next", "terminated")`` / ``("next", "done")`` are the ones that end a
     transition.
 
+    With ``as_truncations=True`` a termination still ends its episode but as a
+    truncation: ``terminated`` becomes all False, ``truncated`` takes its True
+    entries and ``done`` is unchanged, so the env resets there as before while
+    value estimators (TorchRL's ``GAE``, the SAC losses) bootstrap from the
+    final observation at every done. This is ManiSkill's PPO and SAC baselines'
+    ``bootstrap_at_done="always"`` with partial resets: a success termination
+    must not look like the end of all future reward, or the policy learns to
+    hover short of success.
+
     Args:
         in_keys (sequence of NestedKey, optional): the terminated entries to
             clear, one per group. Defaults to every terminated key of the parent
             env (``"terminated"`` where there is no env).
+        as_truncations (bool, optional): end the episode at a termination, as a
+            truncation, instead of running it to the time limit. Defaults to
+            ``False``.
 
     Examples:
         >>> from torchrl.envs import Compose, TransformedEnv
@@ -61,8 +73,9 @@ class IgnoreTerminations(Transform):
         (torch.Size([50]), False, True)
     """
 
-    def __init__(self, in_keys: Sequence[NestedKey] | None = None) -> None:
+    def __init__(self, in_keys: Sequence[NestedKey] | None = None, *, as_truncations: bool = False) -> None:
         super().__init__(in_keys=in_keys)
+        self.as_truncations = as_truncations
         # The groups of in_keys, computed on first use and dropped with the parent.
         self._groups: list[_Group] | None = None
 
@@ -105,6 +118,10 @@ class IgnoreTerminations(Transform):
             if term is not None:
                 next_tensordict.set(term_key, torch.zeros_like(term))
             trunc = next_tensordict.get(trunc_key, None)
+            if self.as_truncations:
+                if term is not None and trunc is not None:  # done unchanged: it is still terminated | truncated
+                    next_tensordict.set(trunc_key, trunc | term)
+                continue
             if trunc is not None:
                 # A copy, not the same tensor under two keys: in-place writes to one must not hit the other.
                 next_tensordict.set(done_key, trunc.clone())
@@ -128,4 +145,7 @@ class IgnoreTerminations(Transform):
 
     def __repr__(self) -> str:
         given = Transform.in_keys.fget(self)
-        return f"{type(self).__name__}({f'in_keys={given}' if given else ''})"
+        args = [f"in_keys={given}"] if given else []
+        if self.as_truncations:
+            args.append("as_truncations=True")
+        return f"{type(self).__name__}({', '.join(args)})"

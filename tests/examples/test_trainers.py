@@ -147,7 +147,8 @@ def test_config_composes(name):
     cfg = _compose(name, ["demos=/any/file.h5"] if name == "rlpd_pickcube" else [], hydra=True)
     target, env_kwargs = EXPECTED[name]
     assert cfg.trainer._target_ == f"torchrl.trainers.algorithms.configs.trainers.{target}"
-    for env in (cfg.training_env, cfg.eval_env):
+    for which in ("training_env", "eval_env"):
+        env = cfg[which]
         assert (
             env._target_ == "torchrl.envs.TransformedEnv" and env.base_env._target_ == "maniskill_torchrl.ManiSkillEnv"
         )
@@ -155,6 +156,10 @@ def test_config_composes(name):
             "maniskill_torchrl.transforms.IgnoreTerminations",
             "maniskill_torchrl.transforms.EpisodeMetrics",
         ]
+        # PPO's training episodes end at success, as truncations (ManiSkill's PPO baseline); the
+        # evaluations and the off-policy trainers run every episode to the time limit.
+        as_truncations = which == "training_env" and name == "ppo_pullcube"
+        assert env.transform.transforms[0].as_truncations is as_truncations
         for key in ("env_name", "obs_mode", "control_mode", "reward_mode"):
             assert env.base_env[key] == env_kwargs.get(key), key
     assert cfg.training_env.base_env.num_envs == env_kwargs["num_envs"]
@@ -173,8 +178,9 @@ def test_rlpd_needs_its_demonstrations():
 
 @pytest.mark.parametrize("name", sorted(EXPECTED))
 def test_config_env_is_maniskill_env(name):
-    """The training env a YAML builds is ``ManiSkillEnv(...)`` + IgnoreTerminations + EpisodeMetrics,
-    bit for bit on a seeded rollout (episodes of 3 steps: the metrics and the time limit show)."""
+    """The training env a YAML builds is ``ManiSkillEnv(...)`` + IgnoreTerminations + EpisodeMetrics
+    (PPO's: ``IgnoreTerminations(as_truncations=True)``), bit for bit on a seeded rollout (episodes of
+    3 steps: the metrics and the time limit show)."""
     _, env_kwargs = EXPECTED[name]
     env_kwargs = dict(env_kwargs)
     overrides = ["training_env.base_env.max_episode_steps=3"]
@@ -185,7 +191,7 @@ def test_config_env_is_maniskill_env(name):
     env = instantiate(cfg.training_env)()
     by_hand = TransformedEnv(
         ManiSkillEnv(env_kwargs.pop("env_name"), **env_kwargs, sim_backend="physx_cpu", max_episode_steps=3),
-        Compose(IgnoreTerminations(), EpisodeMetrics()),
+        Compose(IgnoreTerminations(as_truncations=name == "ppo_pullcube"), EpisodeMetrics()),
     )
     got, want = seeded_rollout(env, 7, seed=3), seeded_rollout(by_hand, 7, seed=3)
     assert got["next", "episode", "episode_len"].max() == 3  # episodes ended at the time limit

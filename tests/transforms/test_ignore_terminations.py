@@ -111,3 +111,69 @@ def test_forward_on_a_replay_buffer_sample_clears_the_next_flags():
     assert not sample["next", "terminated"].any() and not sample["terminated"].any()
     assert torch.equal(sample["next", "done"], sample["next", "truncated"])
     assert sample["next", "truncated"].any()  # env 1's time limit is kept
+
+
+def test_as_truncations_ends_the_episode_where_it_terminates():
+    """``as_truncations=True``: the Cartpole episode ends at ``fail`` as before (done, reset), as a
+    truncation; TorchRL's GAE then bootstraps from its final observation (ManiSkill's baselines'
+    ``bootstrap_at_done="always"``), where the plain env's termination ends the return."""
+    from torchrl.objectives.value import GAE
+
+    base = TransformedEnv(ManiSkillEnv("MS-CartpoleBalance-v1", obs_mode="state", max_episode_steps=40), CPUUnbatch())
+    env = TransformedEnv(base.base_env, Compose(CPUUnbatch(), IgnoreTerminations(as_truncations=True)))
+    try:
+        assert env.output_spec == base.output_spec
+        assert repr(env.transform[-1]) == "IgnoreTerminations(as_truncations=True)"
+        base.set_seed(1)
+        torch.manual_seed(0)
+        short = base.rollout(100)
+        env.set_seed(1)
+        torch.manual_seed(0)
+        roll = env.rollout(100)
+        n = short.shape[0]
+        assert n < 40 and short["next", "terminated"][-1].item()
+        assert roll.shape == torch.Size([n])  # the episode still ends at the termination
+        assert torch.equal(roll["next", "observation"], short["next", "observation"])
+        assert not roll["next", "terminated"].any()
+        assert torch.equal(roll["next", "done"], short["next", "done"])
+        assert torch.equal(roll["next", "truncated"], short["next", "terminated"] | short["next", "truncated"])
+
+        value = torch.nn.Linear(roll["observation"].shape[-1], 1)
+        from tensordict.nn import TensorDictModule
+
+        critic = TensorDictModule(value, in_keys=["observation"], out_keys=["state_value"])
+        gae = GAE(gamma=0.9, lmbda=0.95, value_network=critic)
+        with torch.no_grad():
+            last_value = value(roll["next", "observation"][-1])
+            ours, plain = gae(roll.clone())["value_target"][-1], gae(short.clone())["value_target"][-1]
+        reward = roll["next", "reward"][-1]
+        torch.testing.assert_close(ours, reward + 0.9 * last_value)  # bootstrapped
+        torch.testing.assert_close(plain, reward)  # the termination ends the return
+    finally:
+        base.close()
+
+
+def test_as_truncations_on_nested_keys_and_stored_data():
+    env = TransformedEnv(
+        ToyEnv([2, 4, 3], terminate=[True, False, True], multi_agent=True), IgnoreTerminations(as_truncations=True)
+    )
+    ref = ToyEnv([2, 4, 3], terminate=[True, False, True], multi_agent=True)
+    check_env_specs(env)
+    roll = env.rollout(6, break_when_any_done=False)
+    expected = ref.rollout(6, break_when_any_done=False)
+    for prefix in ((), ("agents",)):
+        term, trunc, done = (roll[("next", *prefix, k)] for k in ("terminated", "truncated", "done"))
+        ref_term, ref_trunc, ref_done = (expected[("next", *prefix, k)] for k in ("terminated", "truncated", "done"))
+        assert ref_term.any() and not term.any()
+        assert torch.equal(done, ref_done)
+        assert torch.equal(trunc, ref_trunc | ref_term)
+    data = TensorDict(
+        terminated=torch.tensor([[True], [False]]),
+        truncated=torch.tensor([[False], [True]]),
+        done=torch.tensor([[True], [True]]),
+        batch_size=[2],
+    )
+    out = IgnoreTerminations(as_truncations=True)(data.clone())
+    assert out["terminated"].tolist() == [[False], [False]]
+    assert out["truncated"].tolist() == [[True], [True]]
+    assert out["done"].tolist() == [[True], [True]]
