@@ -37,6 +37,9 @@ Other gaps, met in the configs (noted for upstream; the guide lists them too):
   state-independent log std: the library's ``network/ppo_mlp`` node); ``SACLoss`` always backs
   up the entropy (ManiSkill's RLPD: ``backup_entropy: False``).
 - With ``optim_steps_per_batch: null``, ``optim_steps`` counts the sampler's end as a step.
+- The on-policy trainers' GAE stops bootstrapping at every termination; ManiSkill's PPO ends
+  episodes at success and bootstraps there (``bootstrap_at_done="always"``): the library's
+  ``IgnoreTerminations(as_truncations=True)`` turns terminations into truncations.
 - The CPU engine's ``num_envs`` needs nothing: ``env: maniskill`` with ``num_envs: N`` is one
   batched env (one process per sub-env on the CPU sim) that TorchRL's ``sync`` collector drives.
 """
