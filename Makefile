@@ -1,6 +1,6 @@
 # maniskill_torchrl developer targets. Run `make` for help.
 .DEFAULT_GOAL := help
-.PHONY: help setup test test-examples test-ray test-upstream test-cuda-double test-registry test-nightly lint docs demo bench clean gpu-kit gpu-check
+.PHONY: help setup test test-pictures test-examples test-ray test-upstream test-cuda-double test-registry test-nightly lint docs demo bench clean gpu-kit gpu-check
 
 # MANISKILL=release (default: mani-skill 3.0.x, in .venv) or nightly (mani-skill-nightly, in .venv-nightly).
 MANISKILL   ?= release
@@ -26,6 +26,7 @@ help:
 	@echo "Targets:"
 	@echo "  make setup   create .venv and install the package (+ test, demo, distributed, docs, hydra, maniskill extras); checks Vulkan"
 	@echo "  make test    run the test suite, in 2 processes (PYTEST_ARGS=... passed to pytest; WORKERS=1: serially)"
+	@echo "  make test-pictures  the tests that render (rgb, from_pixels, render()), left out of make test (-m pictures, ~1 min)"
 	@echo "  make test-examples  the examples end to end, as users run them: the demo CLI, PPO, SAC, BC, evaluation, TorchRL's trainers (tests/examples, ~2.5 min)"
 	@echo "  make test-ray  TorchRL's Ray collectors over the library's envs, on a local Ray instance (tests/examples/test_ray.py, ~1 min)"
 	@echo "  make test-upstream  the TorchRL pull request of upstream/ on a copy of the installed torchrl (tests/upstream, ~1.5 min)"
@@ -50,9 +51,15 @@ setup:
 # render tables for its videos: about 2.5 minutes of CPU), the CUDA-double cases (a pytest subprocess
 # of their own, tests/gpu/test_cuda_machine.py) and Ray's (a local Ray instance whose actors each
 # import torch, TorchRL and ManiSkill: over a minute of CPU on 2 cores). CI runs them all.
+SUITE = tests --ignore=tests/registry --ignore=tests/docs --ignore=tests/gpu/test_cuda_machine.py --ignore=tests/upstream \
+	--ignore=tests/examples
 test: setup lint
-	$(VENV)/bin/python -m pytest -q --durations=15 $(call xdist,loadfile) tests --ignore=tests/registry --ignore=tests/docs \
-		--ignore=tests/gpu/test_cuda_machine.py --ignore=tests/upstream --ignore=tests/examples $(PYTEST_ARGS)
+	$(VENV)/bin/python -m pytest -q --durations=15 $(call xdist,loadfile) $(SUITE) -m "not pictures" $(PYTEST_ARGS)
+
+# The suite's tests that render (marker `pictures`): SAPIEN's render tables cost seconds of CPU in
+# each process that renders (Mesa's lavapipe here), about a minute of the suite on 2 cores.
+test-pictures: setup
+	$(VENV)/bin/python -m pytest -q --durations=5 $(call xdist,loadfile) $(SUITE) -m pictures $(PYTEST_ARGS)
 
 test-examples: setup
 	$(VENV)/bin/python -m pytest -q --durations=10 $(call xdist,loadfile) tests/examples --ignore=tests/examples/test_ray.py $(PYTEST_ARGS)

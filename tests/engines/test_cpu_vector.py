@@ -286,6 +286,7 @@ def test_collector_with_transforms(pick_vec):
     assert (batch["next", "elapsed_steps"][done] == 4).all()
 
 
+@pytest.mark.pictures
 def test_rgb_observations_and_render():
     env = ManiSkillEnv(
         "PickCube-v1",

@@ -226,6 +226,7 @@ def test_specs_state_dict_nested(envs):
     assert td["extra", "is_grasped"].dtype == torch.bool
 
 
+@pytest.mark.pictures
 def test_specs_rgb(envs):
     env = envs.torchrl("pick_rgb")
     rgb = env.observation_spec["sensor_data", "base_camera", "rgb"]
@@ -248,7 +249,9 @@ def test_specs_dict_action(envs):
         assert torch.equal(spec.space.high, torch.as_tensor(sub.high).expand(1, 8))
 
 
-@pytest.mark.parametrize("name", ["pick", "pick_sd", "pick_rgb", "cartpole", "two_robot"])
+@pytest.mark.parametrize(
+    "name", ["pick", "pick_sd", pytest.param("pick_rgb", marks=pytest.mark.pictures), "cartpole", "two_robot"]
+)
 def test_check_env_specs(envs, name):
     check_env_specs(envs.torchrl(name), seed=0)
 
@@ -399,6 +402,7 @@ def test_rollout_info_entries(envs):
     assert rollout["next", "truncated"][0, -1].item() and not rollout["next", "truncated"][0, :-1].any()
 
 
+@pytest.mark.pictures
 def test_from_pixels_equals_maniskill_render(envs):
     env, raw = envs.torchrl("pixels"), envs.raw("pixels")
     spec = env.observation_spec["pixels"]
@@ -447,6 +451,7 @@ def _inference_leaves(td: TensorDictBase) -> list:
     return [k for k, v in td.items(True, True) if v.is_inference()]
 
 
+@pytest.mark.pictures
 @pytest.mark.parametrize("inference_mode", [None, True, False])
 def test_inference_mode_calls_and_values(inference_mode):
     """The wrapper calls ManiSkill under inference mode when asked (not by default: the caller
@@ -475,6 +480,7 @@ def test_inference_mode_calls_and_values(inference_mode):
         close_envs([env, raw])
 
 
+@pytest.mark.pictures
 def test_inference_mode_outputs_are_normal_tensors(envs):
     """ManiSkillEnv runs a CPU-sim env in inference mode by default; what it returns can be
     modified in place (as TorchRL's partial resets and users' transforms do): copies, not

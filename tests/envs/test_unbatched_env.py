@@ -115,7 +115,7 @@ def _assert_matches_raw(td: TensorDictBase, raw: dict, what: str) -> None:
         ("PickCube-v1", {"obs_mode": "state", "inference_mode": False}),
         ("PickCube-v1", {"obs_mode": "state_dict"}),
         ("TwoRobotPickCube-v1", {"obs_mode": "state_dict"}),  # a Dict action space
-        ("PickCube-v1", {"obs_mode": "rgb", "from_pixels": True}),
+        pytest.param("PickCube-v1", {"obs_mode": "rgb", "from_pixels": True}, marks=pytest.mark.pictures),
     ],
 )
 def test_same_as_raw_maniskill_loop(env_id: str, kwargs: dict) -> None:
@@ -154,6 +154,7 @@ def test_same_as_raw_maniskill_loop(env_id: str, kwargs: dict) -> None:
         close_envs([env, raw])
 
 
+@pytest.mark.pictures
 def test_pixels_and_rgb_observations() -> None:
     env, oracle = _pair("PickCube-v1", obs_mode="rgb", from_pixels=True, max_episode_steps=MAX_STEPS)
     try:

@@ -143,6 +143,7 @@ def _pipeline(gym_env, steps: int, keep: list) -> TensorDict:
     return batch
 
 
+@pytest.mark.pictures
 def test_reused_picture_buffers_do_not_alias_returned_data(request):
     # The oracle renders with render_backend="cpu": on a CUDA machine, alone in its own process.
     if alone_where_cuda(request):

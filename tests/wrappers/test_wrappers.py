@@ -111,7 +111,7 @@ FLAGS = [(False, False), (True, False), (False, True), (True, True)]
 CPU_CASES = [
     ("PickCube-v1", "state", 10, 24),
     ("PickCube-v1", "state_dict", 10, 24),
-    ("PickCube-v1", "rgb", 3, 5),
+    pytest.param("PickCube-v1", "rgb", 3, 5, marks=pytest.mark.pictures),
     ("MS-CartpoleBalance-v1", "state", 20, 40),
     ("MS-CartpoleBalance-v1", "state_dict", 20, 40),
     ("TwoRobotPickCube-v1", "state", 10, 14),
@@ -148,6 +148,7 @@ def test_cpu_gym_wrapper_long_episode_return(env_pair):
     assert stats["max_len"] == 140 and stats["ends"] == 1
 
 
+@pytest.mark.pictures
 def test_cpu_gym_wrapper_render(env_pair):
     env_ref, env_ours = env_pair("PickCube-v1", "rgb", 3)
     ref, ours = MSCPUGymWrapper(env_ref), CPUGymWrapper(env_ours)
