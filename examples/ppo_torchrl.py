@@ -18,8 +18,9 @@ Two simulators (``--sim-backend``; the learner's device is ``--device``):
   the whole loop end to end in well under a minute (``--smoke --device cuda``: the
   same on the CPU sim, the learner on the GPU).
 
-Either way the env then gets ``ActionRepeat`` (``--repeat``, optional) and
-``EpisodeMetrics`` (return, length, success once / at end per episode), and
+Either way the env then gets ``ActionRepeat`` (``--repeat``, optional),
+``EpisodeMetrics`` (return, length, success once / at end per episode) and,
+with ``--bootstrap-at-done always`` (the default), ``IgnoreTerminations(as_truncations=True)``;
 the training loop is TorchRL's: ``Collector`` -> ``GAE`` -> a replay buffer
 with ``SamplerWithoutReplacement`` -> ``ClipPPOLoss``, with a
 ``ProbabilisticActor`` (``TanhNormal``, state-independent scale) and a
@@ -59,7 +60,7 @@ from torch import nn
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
-from torchrl.envs import EnvBase, ParallelEnv, SerialEnv
+from torchrl.envs import EnvBase, ParallelEnv, SerialEnv, TransformedEnv
 from torchrl.envs.utils import ExplorationType
 from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import ClipPPOLoss
@@ -74,11 +75,10 @@ from evaluation import (  # noqa: F401 (names kept here)
     time_limit,
 )
 from maniskill_torchrl.pipeline import make_env as make_pipeline
+from maniskill_torchrl.transforms import IgnoreTerminations
 
 CHECKPOINT_FORMAT = "maniskill_torchrl.ppo.v1"
 BEST = "ppo_checkpoint_best.pt"  # the policy of the evaluation with the highest success_once
-# GAE's "terminated" entry under --bootstrap-at-done always: False everywhere, so no done stops the bootstrap.
-NO_TERMINATION = "no_termination"
 
 warnings.filterwarnings("ignore", message=".*precision lowered by casting.*")
 
@@ -102,18 +102,28 @@ def _env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def make_env(args: argparse.Namespace) -> EnvBase:
-    """The training env: batch ``[num_envs]``, its outputs on the learner's device (``--device``)."""
+    """The training env: batch ``[num_envs]``, its outputs on the learner's device (``--device``).
+
+    ``--bootstrap-at-done always`` (ManiSkill's baseline): episodes still end at success, but as
+    truncations (``IgnoreTerminations(as_truncations=True)``), so GAE bootstraps from the final
+    observation's value at every done: a success termination must not look like the end of all
+    future reward, or the policy learns to hover short of success."""
     env_kwargs = _env_kwargs(args)
     if args.vec == "batched":
         # A batched TorchRL env on either sim (one GPU simulator, or one CPU worker per env): no CPUUnbatch.
-        return make_pipeline(
+        env = make_pipeline(
             args.env_id, num_envs=args.num_envs, repeat=args.repeat, **sim_device.env_kwargs(args), **env_kwargs
         )
-    # The CPU sim's workers step on the CPU; the batched env hands their outputs over on --device.
-    make = functools.partial(make_cpu_env, args.env_id, args.repeat, env_kwargs)
-    if args.vec == "serial":
-        return SerialEnv(args.num_envs, make, device=args.device)
-    return ParallelEnv(args.num_envs, make, mp_start_method="spawn", device=args.device)
+    else:
+        # The CPU sim's workers step on the CPU; the batched env hands their outputs over on --device.
+        make = functools.partial(make_cpu_env, args.env_id, args.repeat, env_kwargs)
+        if args.vec == "serial":
+            env = SerialEnv(args.num_envs, make, device=args.device)
+        else:
+            env = ParallelEnv(args.num_envs, make, mp_start_method="spawn", device=args.device)
+    if args.bootstrap_at_done == "always":
+        env = TransformedEnv(env, IgnoreTerminations(as_truncations=True))
+    return env
 
 
 def _time_limit(args: argparse.Namespace) -> int:
@@ -164,10 +174,6 @@ def make_objective(
 ) -> tuple[GAE, ClipPPOLoss, torch.optim.Optimizer]:
     """GAE, the clipped PPO loss (normalised advantages, L2 critic) and its Adam optimiser."""
     advantage = GAE(gamma=args.gamma, lmbda=args.lmbda, value_network=value, average_gae=False)
-    if args.bootstrap_at_done == "always":
-        # ManiSkill's baseline bootstraps every done, success terminations included, from the value of
-        # the final observation: GAE then reads its "terminated" from an all-False entry (see train()).
-        advantage.set_keys(terminated=NO_TERMINATION)
     loss_module = ClipPPOLoss(
         policy,
         value,
@@ -180,19 +186,6 @@ def make_objective(
     )
     optim = torch.optim.Adam(loss_module.parameters(), lr=args.lr, eps=1e-5)
     return advantage, loss_module, optim
-
-
-@torch.no_grad()
-def estimate_advantage(args: argparse.Namespace, advantage: GAE, batch: TensorDictBase) -> None:
-    """Writes GAE's ``"advantage"`` and ``"value_target"`` into ``batch``.
-
-    ``--bootstrap-at-done always`` (ManiSkill's baseline) bootstraps from the final observation's
-    value at every done: a success termination must not look like the end of all future reward,
-    or the policy learns to hover short of success. GAE's ``"terminated"`` is then an all-False
-    entry; ``"done"`` still cuts the lambda-return between episodes."""
-    if args.bootstrap_at_done == "always":
-        batch.set(("next", NO_TERMINATION), torch.zeros_like(batch.get(("next", "terminated"))))
-    advantage(batch)
 
 
 def ppo_update(
@@ -212,7 +205,8 @@ def ppo_update(
     """
     updates = 0
     for _ in range(args.epochs):
-        estimate_advantage(args, advantage, batch)
+        with torch.no_grad():
+            advantage(batch)
         buffer.empty()
         buffer.extend(batch.reshape(-1))
         for _ in range(updates_per_epoch):

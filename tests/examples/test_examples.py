@@ -381,7 +381,8 @@ def test_device_flags(example, flags, cuda, expected, monkeypatch, capsys) -> No
 
 
 class _Recorder:
-    """Stands in for ``make_pipeline`` / ``ParallelEnv`` / ``SerialEnv``: records the call, builds nothing."""
+    """Stands in for ``make_pipeline`` / ``ParallelEnv`` / ``SerialEnv``: records the call, builds nothing
+    (PPO's ``--bootstrap-at-done never``: no env to wrap in its ``IgnoreTerminations``)."""
 
     def __init__(self) -> None:
         self.calls: list[tuple[tuple, dict]] = []
@@ -409,7 +410,7 @@ def test_training_env_is_made_on_the_learners_device(example, flags, expected, m
     module = EXAMPLE_MODULES[example]
     record = _Recorder()
     monkeypatch.setattr(module, "make_pipeline", record)
-    module.make_env(module.parse_args(flags))
+    module.make_env(module.parse_args(flags + (["--bootstrap-at-done", "never"] if example == "ppo" else [])))
     ((_, kwargs),) = record.calls
     assert (kwargs["sim_backend"], kwargs["device"]) == (expected[0], torch.device(expected[1]))
 
@@ -421,7 +422,8 @@ def test_ppo_cpu_workers_hand_over_on_the_learners_device(vec, monkeypatch) -> N
     _fake_cuda(monkeypatch, True)
     record = _Recorder()
     monkeypatch.setattr(ppo_torchrl, "ParallelEnv" if vec == "parallel" else "SerialEnv", record)
-    ppo_torchrl.make_env(ppo_torchrl.parse_args(["--sim-backend", "cpu", "--device", "cuda", "--vec", vec]))
+    flags = ["--sim-backend", "cpu", "--device", "cuda", "--vec", vec, "--bootstrap-at-done", "never"]
+    ppo_torchrl.make_env(ppo_torchrl.parse_args(flags))
     ((args, kwargs),) = record.calls
     assert kwargs["device"] == "cuda:0"
     worker = args[1]  # functools.partial(make_cpu_env, ...): the CPU sim, on the CPU

@@ -8,10 +8,12 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDict
 from torch import nn
+from torchrl.envs import Compose
 from torchrl.modules import ValueOperator
 
 import ppo_torchrl
 from maniskill_torchrl import ManiSkillEnv
+from maniskill_torchrl.transforms import IgnoreTerminations
 
 
 def test_ppo_objective_falls_on_a_fixed_batch() -> None:
@@ -26,7 +28,8 @@ def test_ppo_objective_falls_on_a_fixed_batch() -> None:
     finally:
         env.close()
     advantage, loss_module, optim = ppo_torchrl.make_objective(args, policy, value)
-    ppo_torchrl.estimate_advantage(args, advantage, batch)  # fixed targets: the updates move the critic and ratio
+    with torch.no_grad():
+        advantage(batch)  # fixed targets: the updates move the critic and ratio
 
     def losses() -> tuple[float, float]:
         out = loss_module(batch)
@@ -45,26 +48,45 @@ def test_ppo_objective_falls_on_a_fixed_batch() -> None:
 
 
 def test_bootstrap_at_done_follows_maniskills_baseline() -> None:
-    """``always`` (ManiSkill's PPO baseline): a terminated step still bootstraps from the value of its
-    final observation, delta = r + gamma * V(s_final) - V(s); ``never``: delta = r - V(s). Steps that
-    did not end an episode, and the lambda chain cut at the done, are the same either way."""
+    """``always`` (ManiSkill's PPO baseline): the training env ends with
+    ``IgnoreTerminations(as_truncations=True)``, so a terminated step still bootstraps from the value
+    of its final observation, delta = r + gamma * V(s_final) - V(s); ``never``: no such transform,
+    delta = r - V(s). Steps that did not end an episode, and the lambda chain cut at the done, are the
+    same either way."""
     torch.manual_seed(0)
     value = ValueOperator(nn.Linear(3, 1), in_keys=["observation"])
     ended = torch.tensor([[False], [True], [False], [False]])  # a success termination at step 1
     batch = TensorDict(
         {
             "observation": torch.randn(4, 3),
-            "next": {"observation": torch.randn(4, 3), "reward": torch.rand(4, 1), "done": ended, "terminated": ended},
+            "next": {
+                "observation": torch.randn(4, 3),
+                "reward": torch.rand(4, 1),
+                "done": ended,
+                "terminated": ended,
+                "truncated": torch.zeros_like(ended),
+            },
         },
         [4],
     )
     out = {}
     for mode in ("always", "never"):
-        args = ppo_torchrl.parse_args(["--device", "cpu", "--bootstrap-at-done", mode])
+        args = ppo_torchrl.parse_args(
+            ["--device", "cpu", "--sim-backend", "cpu", "--num-envs", "1", "--bootstrap-at-done", mode]
+        )
+        env = ppo_torchrl.make_env(args)
+        try:
+            last = env.transform[-1] if isinstance(env.transform, Compose) else env.transform
+            assert isinstance(last, IgnoreTerminations) == (mode == "always")
+            # What the env hands over: the batch through its last transform, on stored data.
+            b = last(batch.clone()) if isinstance(last, IgnoreTerminations) else batch.clone()
+        finally:
+            env.close()
         advantage, _, _ = ppo_torchrl.make_objective(args, value, value)  # only GAE is used: any actor will do
-        b = batch.clone()
-        ppo_torchrl.estimate_advantage(args, advantage, b)
+        with torch.no_grad():
+            advantage(b)
         out[mode] = b
+    assert torch.equal(out["always"]["next", "done"], ended)  # the episode still ends there
     with torch.no_grad():
         v_final = value.module(batch["next", "observation"][1])
     diff = out["always"]["advantage"] - out["never"]["advantage"]
