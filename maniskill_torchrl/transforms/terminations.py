@@ -46,7 +46,7 @@ class IgnoreTerminations(Transform):
     truncation: ``terminated`` becomes all False, ``truncated`` takes its True
     entries and ``done`` is unchanged, so the env resets there as before while
     value estimators (TorchRL's ``GAE``, the SAC losses) bootstrap from the
-    final observation at every done. This is ManiSkill's PPO and SAC baselines'
+    final observation at every done. This is ManiSkill's PPO baseline's
     ``bootstrap_at_done="always"`` with partial resets: a success termination
     must not look like the end of all future reward, or the policy learns to
     hover short of success.
