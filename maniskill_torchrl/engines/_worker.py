@@ -19,6 +19,7 @@ from __future__ import annotations
 import multiprocessing
 import os
 import pickle
+import signal
 import sys
 import traceback
 from collections.abc import Mapping
@@ -287,6 +288,9 @@ def serve(conn: Any, make: MakeWorker) -> None:
     is gone) ends it.
     """
     index = make.index
+    # Ctrl-C reaches every process of the terminal's group: the parent decides, and closes its
+    # workers itself (a worker that quit here would leave the parent's receive a dead pipe).
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         env = make()
         _send(conn, ("ready", env.observation_space, env.action_space, env.render_mode))
@@ -331,8 +335,6 @@ def serve(conn: Any, make: MakeWorker) -> None:
                 else:
                     raise ValueError(f"unknown command {command!r}")
                 _send(conn, ("ok", value))
-            except KeyboardInterrupt:  # Ctrl-C reaches every process of the group: the parent decides
-                return
             except Exception as err:
                 _fail(conn, index, err)
     finally:
