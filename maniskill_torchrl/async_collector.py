@@ -11,6 +11,7 @@ factories and cannot take a :class:`~maniskill_torchrl.ManiSkillAsyncEnvPool`.
 from __future__ import annotations
 
 import time
+import warnings
 from collections import OrderedDict
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -30,6 +31,8 @@ from maniskill_torchrl.envs.async_pool import ManiSkillAsyncEnvPool
 __all__ = ["AsyncPoolCollector"]
 
 _TRAJ_IDS = ("collector", "traj_ids")
+# Seconds the drain after Ctrl-C waits for the steps under way (a step takes milliseconds).
+_INTERRUPTED_DRAIN_S = 10.0
 _MARKS = (_TRAJ_IDS, "step_count", ("next", "step_count"))  # the collector's own entries
 
 
@@ -126,10 +129,12 @@ class AsyncPoolCollector(BaseCollector):
         self._traj_ids = np.zeros(n, dtype=np.int64)  # set when the episodes start
         self._next_traj = 0
         self._step_count = np.zeros(n, dtype=np.int64)
-        # The transitions received and not yet yielded, rows [0, cursor) of a buffer of
-        # frames_per_batch + num_envs rows (a receive brings num_envs at most), made on the first
-        # receive; its entries as numpy views, for the pool's and the marks' copies.
+        # The transitions received and not yet yielded, rows [0, cursor) of a buffer made on the first
+        # receive; its entries as numpy views, for the pool's and the marks' copies. A receive brings
+        # num_envs rows at most: before one, the cursor is below frames_per_batch, or (the drain
+        # after a batch) below num_envs.
         self._buffer: TensorDictBase | None = None
+        self._buffer_keys: frozenset = frozenset()
         self._arrays: dict = {}
         self._cursor = 0
         # Roots not acted on yet (after a drain, or a failing policy), and the pool's count of
@@ -153,20 +158,20 @@ class AsyncPoolCollector(BaseCollector):
             index = index.tolist()
         self.env.async_step_and_maybe_reset_send(roots, env_index=index)
 
-    def _receive(self) -> TensorDictBase:
+    def _receive(self, timeout: float | None = None) -> TensorDictBase:
         """Receives at least ``min_get`` transitions into the buffer at the cursor; returns the
-        roots of those envs' next steps."""
+        roots of those envs' next steps (``timeout``: seconds, then a ``TimeoutError``)."""
         pool, start = self.env, self._cursor
         fast = getattr(pool, "_into", None) is not None and self._buffer is not None
         if fast:  # one numpy copy per entry, straight from the pool's rows (ManiSkillAsyncEnvPool)
-            rows, done, roots = pool._recv_into(start, self.min_get)
+            rows, done, roots = pool._recv_into(start, self.min_get, timeout)
         else:
-            transitions, roots = pool.async_step_and_maybe_reset_recv(min_get=self.min_get)
+            transitions, roots = pool.async_step_and_maybe_reset_recv(min_get=self.min_get, timeout=timeout)
             index = transitions.get("env_index")  # TorchRL's pools: python ints
             rows = np.asarray(index.tolist() if not isinstance(index, torch.Tensor) else index.numpy(), np.int64)
             transitions = transitions.exclude(*_MARKS, inplace=False)
             transitions.set("env_index", torch.from_numpy(rows))
-            if self._buffer is None:
+            if self._buffer is None or frozenset(transitions.keys(True, True)) != self._buffer_keys:
                 self._make_buffer(transitions)
             self._buffer[start : start + len(rows)] = transitions
             done = transitions.get(("next", "done")).numpy().reshape(-1)
@@ -177,13 +182,29 @@ class AsyncPoolCollector(BaseCollector):
         return roots
 
     def _make_buffer(self, example: TensorDictBase) -> None:
-        rows = self.frames_per_batch + self.env.num_envs
+        """The buffer, laid out as ``example`` (a transition): on the first receive, and when the
+        entries of the transitions change (a new policy); the kept transitions move into it."""
+        n = self.env.num_envs
+        rows = n + max(self.frames_per_batch, n)
         example = example[:1].exclude(*_MARKS, inplace=False)
+        self._buffer_keys = frozenset(example.keys(True, True))
         example.set(_TRAJ_IDS, torch.zeros(1, dtype=torch.int64))
         example.set("step_count", torch.zeros(1, 1, dtype=torch.int64))
         example.set(("next", "step_count"), torch.zeros(1, 1, dtype=torch.int64))
+        old, kept = self._buffer, self._cursor
         self._buffer = example.expand(rows).clone()
         self._arrays = {key: self._buffer.get(key).numpy() for key in self._buffer.keys(True, True)}
+        if old is not None and kept:
+            ours, theirs = set(self._buffer.keys(True, True)), set(old.keys(True, True))
+            self._buffer[:kept] = old[:kept].select(*(ours & theirs))
+            if ours != theirs:
+                warnings.warn(
+                    f"AsyncPoolCollector: the policy's entries changed with {kept} transitions kept from the last "
+                    f"iteration; in those, {sorted(theirs - ours, key=str)} are dropped and "
+                    f"{sorted(ours - theirs, key=str)} are zeros.",
+                    RuntimeWarning,
+                    stacklevel=5,
+                )
 
     def _mark(self, rows: np.ndarray, done: np.ndarray, start: int, end: int) -> None:
         """Trajectory ids and step counts of the transitions at ``start:end`` (envs ``rows``), then
@@ -273,10 +294,22 @@ class AsyncPoolCollector(BaseCollector):
                 stats["wait"] += w1 - w0
                 stats["policy"] += clock() - t1
                 stats["total"] += clock() - t0
-        finally:
-            self._drain()
+        except BaseException as err:  # an error, Ctrl-C, or the iterator closed (GeneratorExit)
+            interrupted = isinstance(err, KeyboardInterrupt)
+            if interrupted:  # it may have come mid-receive: the episodes start afresh next time
+                self._running = False
+            try:
+                # After Ctrl-C, a bounded wait: the user's handler (a checkpoint) comes first.
+                self._drain(timeout=_INTERRUPTED_DRAIN_S if interrupted else None)
+            except Exception as drain_error:
+                if isinstance(err, GeneratorExit):
+                    raise
+                # The user's error (or KeyboardInterrupt) is the one raised; the drain's is told.
+                err.add_note(f"AsyncPoolCollector: draining the pool then failed too: {drain_error!r}")
+            raise
+        self._drain()
 
-    def _drain(self) -> None:
+    def _drain(self, timeout: float | None = None) -> None:
         """Receives the steps still under way into the buffer and keeps their roots for the next
         iteration, so that the pool is idle: it can reset, step in lockstep, or close."""
         pool = self.env
@@ -284,7 +317,7 @@ class AsyncPoolCollector(BaseCollector):
         if pending:
             min_get, self.min_get = self.min_get, pending
             try:
-                self._held.append(self._receive())
+                self._held.append(self._receive(timeout))
             finally:
                 self.min_get = min_get
         self._epoch = getattr(pool, "_epoch", None)

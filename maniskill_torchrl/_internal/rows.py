@@ -53,15 +53,16 @@ class RowStore:
         return frozenset(tensordict.keys(True, True)) == self._leaves
 
     def write(self, rows: np.ndarray, tensordict: TensorDictBase, same: dict | None = None) -> None:
-        """``tensordict``'s rows into ``rows``. ``same``: nested dicts of tensors whose values these
-        rows hold already (written with :meth:`put`): a leaf that is still one of them is skipped."""
+        """``tensordict``'s rows into ``rows``. ``same``: nested dicts of fresh tensors whose values
+        these rows hold already: a leaf that is still one of them, unedited (its version counter
+        untouched by an in-place write), is skipped."""
         for key, path, array in zip(self.keys, self.paths, self.arrays):
             value = tensordict.get(key)
             if same is not None:
                 node = same
                 for name in path:
                     node = node.get(name) if isinstance(node, dict) else None
-                if node is value:
+                if node is value and value._version == 0:
                     continue
             array[rows] = value.detach().numpy()
 

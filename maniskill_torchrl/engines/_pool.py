@@ -22,6 +22,8 @@ __all__ = ["DONE", "STEP", "STEP_RESET", "WorkerFailure", "WorkerPool"]
 # A step crosses a worker's pipe as one byte each way: the parent's wake, the worker's done.
 # STEP_RESET (split-phase engines): step, and reset at once if that step ended the episode.
 STEP, DONE, STEP_RESET = b"s", b"k", b"a"
+# Seconds an interrupted wait still waits for a worker's answer to its call (WorkerPool._settle).
+_SETTLE_S = 10.0
 
 
 class WorkerFailure(Exception):
@@ -75,11 +77,17 @@ class WorkerPool:
             pipe.send_bytes(STEP)
 
     def wait(self) -> None:
-        """Returns once every worker has written its step."""
-        for i, pipe in enumerate(self.pipes):
-            answer = pipe.recv_bytes()
-            if answer != DONE:
-                self._raise(i, answer)
+        """Returns once every worker has written its step. Interrupted (Ctrl-C), it still reads the
+        answers of the workers it had not heard from, so that the next call starts in step."""
+        i = 0
+        try:
+            for i, pipe in enumerate(self.pipes):
+                answer = pipe.recv_bytes()
+                if answer != DONE:
+                    self._raise(i, answer)
+        except KeyboardInterrupt:
+            self._settle(range(i, len(self.pipes)))
+            raise
 
     # ------------------------------------------------------------- split phase
     def wake_some(self, positions: list[int], message: bytes) -> None:
@@ -116,8 +124,26 @@ class WorkerPool:
             pipe.send_bytes(message)
 
     def collect(self, positions: list[int]) -> list:
-        """The answers of the workers at ``positions``, in that order."""
-        return [self._answer(i) for i in positions]
+        """The answers of the workers at ``positions``, in that order (interrupted: as :meth:`wait`)."""
+        out: list = []
+        try:
+            for i in positions:
+                out.append(self._answer(i))
+        except KeyboardInterrupt:
+            self._settle(positions[len(out) :])
+            raise
+        return out
+
+    def _settle(self, positions: Any) -> None:
+        """Reads and drops the answers owed by the workers at ``positions`` (after an interrupted
+        wait: the workers ignore SIGINT and finish their call); a worker that is gone is skipped, and
+        one silent for ``_SETTLE_S`` s (its answer read already, when the interrupt came after it)."""
+        for i in positions:
+            try:
+                if self.pipes[i].poll(_SETTLE_S):
+                    self.pipes[i].recv_bytes()
+            except (EOFError, OSError):
+                pass
 
     def collect_all(self) -> list:
         return self.collect(list(range(len(self.pipes))))
@@ -161,6 +187,12 @@ class WorkerPool:
         if self._selector is not None:
             self._selector.close()
             self._selector = None
+
+    def kill(self, positions: list[int]) -> None:
+        """SIGKILLs the workers at ``positions`` (stuck ones: a stopped process cannot act on SIGTERM)."""
+        for i in positions:
+            if self.processes[i].is_alive():
+                self.processes[i].kill()
 
     def stop(self) -> None:
         """Terminates every live worker and closes the pipes (after a failure)."""

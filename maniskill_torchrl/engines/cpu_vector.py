@@ -214,16 +214,18 @@ class CPUVectorEnv:
         self.split_phase = bool(split_phase)
         # Split phase, one entry per sub-env: the call under way (IDLE, STEPPING, STEPPING_RESET,
         # RESETTING), whether its answer has been read (and its arrival number, for the order of
-        # receipt), when it was sent (the watchdog) and whether it was warned about.
+        # receipt), the seconds a receive has waited for it since it was sent (the watchdog: a pause of
+        # the caller between two receives is never the sub-env's) and whether it was warned about.
         self._state = np.zeros(int(num_envs), np.int8)
         self._arrived = np.zeros(int(num_envs), np.bool_)
         self._arrival = np.zeros(int(num_envs), np.int64)
         self._arrivals = 0
-        self._sent_at = np.zeros(int(num_envs))
+        self._waited_on = np.zeros(int(num_envs))
         self._warned = np.zeros(int(num_envs), np.bool_)
         self._watch_at = 0.0
-        #: Seconds a sub-env may take over one split-phase call before a warning (``warn_after``),
-        #: then before an error that closes the env (``fail_after``: a stuck worker); None: never.
+        #: Seconds a receive may wait for one sub-env's split-phase call before a warning
+        #: (``warn_after``), then before an error that closes the env (``fail_after``: a stuck worker);
+        #: None: never. Only the time spent waiting in a receive counts, not the caller's own time.
         self.warn_after: float | None = 30.0
         self.fail_after: float | None = 300.0
         self._pool: WorkerPool | None = None
@@ -453,6 +455,10 @@ class CPUVectorEnv:
         ``"step_reset"``, ``"reset"``)."""
         return {i: _KIND_NAMES[k] for i, k in enumerate(self._state.tolist()) if k}
 
+    def stepping(self) -> np.ndarray:
+        """A ``[num_envs]`` bool mask (a fresh array) of the sub-envs with a split-phase step under way."""
+        return (self._state == STEPPING) | (self._state == STEPPING_RESET)
+
     def count_pending(self, kind: str) -> int:
         """How many sub-envs have a ``kind`` call (``"step"``, ``"step_reset"``, ``"reset"``) under way."""
         return int(np.count_nonzero(self._state == _KINDS[kind]))
@@ -468,20 +474,22 @@ class CPUVectorEnv:
         if self._pool.pipes[index].poll(0):
             self._read_answers([index])
             return True
-        self._watch(time.monotonic())
+        self._watch()
         return False
 
     def wait_readable(self, index: int, timeout: float) -> None:
         """Waits up to ``timeout`` s for sub-env ``index``'s worker to answer, without reading it
-        (one thread per sub-env may wait so, each on its own)."""
+        (one thread per sub-env may wait so, each on its own; the wait counts for the watchdog)."""
+        start = time.monotonic()
         try:
             self._pool.pipes[index].poll(timeout)
         except (OSError, EOFError, ValueError):  # closed meanwhile: answered() says so
             pass
+        self._waited_on[index] += time.monotonic() - start
 
     def _sent(self, rows: np.ndarray, kind: int) -> None:
         self._state[rows] = kind
-        self._sent_at[rows] = time.monotonic()
+        self._waited_on[rows] = 0.0
         self._warned[rows] = False
 
     def _idle_rows(self, call: str, env_idx: Sequence[int]) -> np.ndarray:
@@ -549,10 +557,7 @@ class CPUVectorEnv:
         limit = under_way if max_get is None else min(int(max_get), under_way)
         start = time.monotonic()
         deadline = None if timeout is None else start + timeout
-        arrived = self._arrived
-        if start >= self._watch_at:  # a few times a second: the envs that keep others waiting
-            self._watch(start)
-            self._watch_at = start + _WATCH_EVERY
+        arrived, waited_on = self._arrived, self._waited_on
         while True:
             got = int(np.count_nonzero(arrived & mine))
             if got >= limit:
@@ -564,13 +569,21 @@ class CPUVectorEnv:
                 wait = None if deadline is None else max(0.0, deadline - now)
                 if self.warn_after is not None or self.fail_after is not None:
                     wait = _WATCH_EVERY if wait is None else min(wait, _WATCH_EVERY)
-            ready = self._pool.readable(wait)
+            if wait == 0.0:  # a poll, not a wait
+                ready = self._pool.readable(0.0)
+            else:  # a wait: it counts for the sub-envs not in yet
+                before = time.monotonic()
+                ready = self._pool.readable(wait)
+                now = time.monotonic()
+                waited_on[mine & ~arrived] += now - before
+                if now >= self._watch_at:  # a few times a second: the envs that keep others waiting
+                    self._watch()
+                    self._watch_at = now + _WATCH_EVERY
             if ready:
                 self._read_answers(ready)
                 if deadline is None and np.count_nonzero(arrived & mine) >= min_get:
                     break  # everything ready at that select is in: no second look
                 continue
-            now = time.monotonic()
             if got >= min_get and (deadline is None or now >= deadline):
                 break
             if deadline is not None and now >= deadline:
@@ -578,8 +591,6 @@ class CPUVectorEnv:
                     f"{name}_recv: {got} of the {min_get} sub-envs asked for finished within {timeout} s; "
                     "what arrived is kept for the next call."
                 )
-            self._watch(now)
-            self._watch_at = now + _WATCH_EVERY
         taken = np.flatnonzero(arrived & mine)
         if taken.size > limit:  # the first to arrive
             taken = np.sort(taken[np.argsort(self._arrival[taken], kind="stable")[:limit]])
@@ -587,18 +598,19 @@ class CPUVectorEnv:
         arrived[taken] = False
         return taken
 
-    def _watch(self, now: float) -> None:
-        """Warns about sub-envs whose call has been under way ``warn_after`` s, and closes the env
-        with an error naming them past ``fail_after`` s (a stuck worker: never a hang)."""
+    def _watch(self) -> None:
+        """Warns about sub-envs a receive has waited ``warn_after`` s for, and closes the env with an
+        error naming them past ``fail_after`` s (a stuck worker: never a hang)."""
         late = (self._state != IDLE) & ~self._arrived
         if not late.any():
             return
-        waited = np.where(late, now - self._sent_at, 0.0)
+        waited = np.where(late, self._waited_on, 0.0)
         if self.fail_after is not None and waited.max() >= self.fail_after:
             stuck = np.flatnonzero(waited >= self.fail_after).tolist()
             pids = [self._pool.processes[i].pid for i in stuck]
             what = f"sub-env(s) {stuck} (pid {pids}) did not answer for {self.fail_after:g} s (fail_after)"
             self._closed_why = f"{what}; their workers were stopped"
+            self._pool.kill(stuck)  # at once: a stopped process cannot act on the SIGTERM of close()
             self.close()
             raise RuntimeError(
                 f"CPUVectorEnv({self.spec.id}): {what}. Their workers are stuck (a sim that never returns, or a "

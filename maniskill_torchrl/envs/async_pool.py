@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import functools
 import threading
+import warnings
 from typing import Any
 
 import numpy as np
@@ -164,8 +165,11 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         self._set_seed(None)
         # What each env was sent to step, kept for its transition: one row per env, one indexed write
         # per send and one indexed read per receive (made on the first send; a TensorDict where the
-        # rows hold something numpy cannot, or after the entries sent changed).
+        # rows hold something numpy cannot). When the entries sent change (a new policy), new rows
+        # are made; the envs whose step is under way keep theirs in the older rows until received
+        # (``_older``: (rows, the envs whose row is there)).
         self._sent: RowStore | TensorDictBase | None = None
+        self._older: list[tuple[RowStore | TensorDictBase, np.ndarray]] = []
         self._into: tuple | None = None  # a collector's plan (_plan_into)
         self._fresh: tuple | None = None  # the last roots of _recv_into, and their entries
         # Counts the plain steps and resets sent: a collector resumes its episodes only if none came between.
@@ -272,24 +276,75 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         with self._pool_lock:
             seeds = self._seeds(env_idx) if autoreset else None
             self._engine.step_send(action, env_idx, autoreset=autoreset, reset_seeds=seeds)
+            self.__dict__["_epoch"] += 1  # not EnvBase's (nn.Module's) __setattr__: on the hot path
             sent = self._sent
-            if sent is None:
-                if RowStore.supports(tensordict):
-                    self._sent = sent = RowStore(tensordict, self.num_envs)
-                else:
-                    self._sent = sent = tensordict[:1].expand(self.num_envs).clone()
-            elif isinstance(sent, RowStore) and not sent.fits(tensordict):
-                # Other entries than before (a new policy): the general, slower rows from now on.
-                self._sent = sent = sent.read(np.arange(self.num_envs))
-                self._into = None
+            if sent is None or not (
+                sent.fits(tensordict)
+                if isinstance(sent, RowStore)
+                else set(sent.keys(True, True)) == set(tensordict.keys(True, True))
+            ):
+                sent = self._new_rows(tensordict, env_idx)
             if isinstance(sent, RowStore):
                 # Roots just made by _recv_into and sent back as they are: only the entries the
                 # policy wrote (or replaced) are new to the rows.
                 fresh = self._fresh
-                self.__dict__["_fresh"] = None  # not EnvBase's (nn.Module's) __setattr__: on the hot path
+                self.__dict__["_fresh"] = None
                 sent.write(env_idx, tensordict, same=fresh[1] if fresh is not None and fresh[0] is tensordict else None)
             else:
-                sent[torch.from_numpy(env_idx)] = tensordict  # an entry new to the rows is made there
+                sent[torch.from_numpy(env_idx)] = tensordict
+
+    def _new_rows(self, tensordict: TensorDictBase, env_idx: np.ndarray) -> RowStore | TensorDictBase:
+        """Rows laid out as ``tensordict`` (the first send, or other entries than before: a new
+        policy), so that a transition holds what its send held and nothing older."""
+        old = self._sent
+        if old is not None:
+            waiting = self._engine.stepping()
+            waiting[env_idx] = False  # just sent: their rows are the new ones
+            if waiting.any():
+                self._older.append((old, waiting))
+        if RowStore.supports(tensordict):
+            rows = RowStore(tensordict, self.num_envs)
+        else:
+            rows = tensordict[:1].expand(self.num_envs).clone()
+        self._sent = rows
+        self._into = None
+        return rows
+
+    def _read_sent(self, rows: np.ndarray) -> TensorDictBase:
+        """What the envs ``rows`` were sent to step, from the rows each was written in."""
+        if not self._older:
+            sent = self._sent
+            return sent.read(rows) if isinstance(sent, RowStore) else sent[torch.from_numpy(rows)]
+        with self._pool_lock:
+            parts, left = [], np.ones(len(rows), dtype=bool)
+            for store, mask in [*self._older, (self._sent, None)]:
+                mine = left.copy() if mask is None else mask[rows] & left
+                if mine.any():
+                    where = rows[mine]
+                    parts.append(
+                        (
+                            np.flatnonzero(mine),
+                            store.read(where) if isinstance(store, RowStore) else store[torch.from_numpy(where)],
+                        )
+                    )
+                    if mask is not None:
+                        mask[where] = False
+                    left &= ~mine
+            self._older = [(store, mask) for store, mask in self._older if mask.any()]
+        if len(parts) == 1:
+            return parts[0][1]
+        keys = [set(part.keys(True, True)) for _, part in parts]
+        common = set.intersection(*keys)
+        warnings.warn(
+            f"{self!r}: the envs received together were sent different entries (a policy changed while "
+            f"steps were under way); their transitions hold the common entries, without "
+            f"{sorted(set.union(*keys) - common, key=str)}. Receive such envs apart (env_index=...) to keep them.",
+            RuntimeWarning,
+            stacklevel=4,
+        )
+        out = torch.cat([part.select(*common) for _, part in parts])
+        order = np.argsort(np.concatenate([where for where, _ in parts]), kind="stable")
+        return out[torch.from_numpy(order)]
 
     def _wait_for(self, env_index: int) -> None:
         """Waits, without holding the pool's lock, until env ``env_index`` has answered (the
@@ -317,8 +372,7 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
 
     def _transitions(self, rows: np.ndarray, step: tuple) -> tuple[TensorDictBase, torch.Tensor]:
         index = torch.from_numpy(rows)
-        sent = self._sent
-        transitions = sent.read(rows) if isinstance(sent, RowStore) else sent[index]
+        transitions = self._read_sent(rows)
         transitions.set(self._env_idx_key, index)
         transitions.set("next", self._inner._step_tensordict(*step))
         return transitions, index
@@ -330,7 +384,6 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
 
     def async_step_send(self, tensordict: TensorDictBase, env_index: int | list[int] | None = None) -> None:
         self._send_steps(tensordict, env_index, autoreset=False)
-        self._epoch += 1
 
     def async_step_recv(
         self,
@@ -380,7 +433,7 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         step and reset entries are views of). Returns whether every entry could be planned so."""
         self._into = None
         sent, inner = self._sent, self._inner
-        if not isinstance(sent, RowStore):
+        if not isinstance(sent, RowStore) or self._older:
             return False
         block, n = self._engine.block, self.num_envs
         results = block.results
@@ -458,14 +511,16 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         self._into = (copies, done_dst, arrays[self._env_idx_key], roots, actions, terminated, truncated, env_store)
         return True
 
-    def _recv_into(self, cursor: int, min_get: int) -> tuple[np.ndarray, np.ndarray, TensorDictBase]:
+    def _recv_into(
+        self, cursor: int, min_get: int, timeout: float | None = None
+    ) -> tuple[np.ndarray, np.ndarray, TensorDictBase]:
         """The collector's receive (after :meth:`_plan_into`): the transitions of the envs whose
         step is done written into the planned arrays at rows ``cursor:cursor + k``, one numpy
         copy per entry, and the roots of their next steps (a reset's, for the envs that ended).
         Returns the envs, their done flags and the roots."""
         copies, done_dst, env_dst, roots_plan, actions, terminated, truncated, env_store = self._into
         with self._pool_lock:
-            rows = self._engine.step_recv_rows(min_get, autoreset=True)
+            rows = self._engine.step_recv_rows(min_get, timeout=timeout, autoreset=True)
         k = len(rows)
         end = cursor + k
         for src, dst in copies:
@@ -516,7 +571,7 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         with self._pool_lock:
             self._engine.reset_send(env_idx, self._seeds(env_idx))
             self._used_seeds(env_idx)
-            self._epoch += 1
+            self.__dict__["_epoch"] += 1
 
     def async_reset_recv(
         self,
@@ -543,8 +598,23 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
 
     # ------------------------------------------------------------------ sync calls
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDictBase:
-        self.async_reset_send(env_index=list(range(self.num_envs)))
-        return self.async_reset_recv(min_get=self.num_envs)
+        # TorchRL's partial reset: only the envs of the "_reset" mask; TorchRL keeps the others' roots
+        # (their rows here are zeros, which its update_during_reset does not read).
+        n = self.num_envs
+        mask = None if tensordict is None else tensordict.get("_reset", None)
+        if mask is None:
+            env_idx = np.arange(n)
+        else:
+            env_idx = np.flatnonzero(mask.reshape(n, -1).any(-1).cpu().numpy())
+        if len(env_idx) == n:
+            self.async_reset_send(env_index=env_idx.tolist())
+            return self.async_reset_recv(min_get=n)
+        out = self.full_observation_spec.zero().update(self.full_done_spec.zero())
+        out.set(self._env_idx_key, torch.arange(n))
+        if len(env_idx):
+            self.async_reset_send(env_index=env_idx.tolist())
+            out[torch.from_numpy(env_idx)] = self.async_reset_recv(min_get=len(env_idx))
+        return out
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         self.async_step_send(tensordict, env_index=list(range(self.num_envs)))
