@@ -197,6 +197,7 @@ def alternate_processes(
     retries: int = 0,
     on_result: Callable[[str, int, dict], None] | None = None,
     startup_limit: float | None = None,
+    busy: int = 0,
 ) -> dict[str, ProcessResult]:
     """Runs each contender ``rounds`` times, each run a fresh child process, rounds alternating.
 
@@ -210,6 +211,9 @@ def alternate_processes(
     rejects (say, other jobs took cores during the timed window) is run again, up to ``retries``
     more times; the last try is kept either way, with the number of rejected tries in ``rejected``.
     ``startup_limit``: seconds a child may take to call :func:`child_ready` (see :func:`_run_child`).
+    ``busy``: that many busy-loop processes (a pure-Python ``while True``, a learner's stand-in) run
+    beside each child, started after the quiet wait and ended with the child; ``accept`` then sees
+    the ``others_cores`` they took less ``busy``.
     """
     if clock not in ("wall", "cpu"):
         raise ValueError(f"clock must be 'wall' or 'cpu', got {clock!r}.")
@@ -225,15 +229,21 @@ def alternate_processes(
                 continue
             rejected = 0
             while True:
-                busy = wait_for_quiet(*quiet, verbose=verbose) if quiet is not None else None
+                before = wait_for_quiet(*quiet, verbose=verbose) if quiet is not None else None
+                loops = [_busy_loop() for _ in range(busy)]
                 t0 = time.perf_counter()
-                payload, log = _run_child(c, timeout, cwd, startup_limit)
+                try:
+                    payload, log = _run_child(c, timeout, cwd, startup_limit)
+                finally:
+                    for loop in loops:
+                        loop.kill()
+                        loop.wait()
                 took = time.perf_counter() - t0
                 if (
                     payload is None
                     or payload.get("skipped")
                     or accept is None
-                    or accept(payload)
+                    or accept({**payload, "others_cores": max(0.0, payload.get("others_cores", 0.0) - busy)})
                     or rejected >= retries
                 ):
                     break
@@ -263,8 +273,10 @@ def alternate_processes(
             res.per_unit_cpu.append(cpu / units)
             res.units.append(units)
             extra = {k: v for k, v in payload.items() if k not in ("units", "wall_s", "cpu_s", "skipped")}
-            if busy is not None:
-                extra["busy_before"] = round(busy, 3)
+            if before is not None:
+                extra["busy_before"] = round(before, 3)
+            if busy:
+                extra["busy_loops"] = busy
             if accept is not None:
                 extra["rejected"] = rejected
             res.extra.append(extra)
@@ -275,6 +287,11 @@ def alternate_processes(
                     flush=True,
                 )
     return results
+
+
+def _busy_loop() -> subprocess.Popen:
+    """A process that keeps a core busy until killed: a learner beside the sims, as on a user's machine."""
+    return subprocess.Popen([sys.executable, "-c", "while True: pass"], start_new_session=True)
 
 
 def add_alternation_args(p: argparse.ArgumentParser, retries: int = 2) -> None:
@@ -305,6 +322,12 @@ def add_alternation_args(p: argparse.ArgumentParser, retries: int = 2) -> None:
         help="a run during which other processes kept more cores busy than this is run again (default 0.25)",
     )
     p.add_argument("--retries", type=int, default=retries, help=f"re-runs of a disturbed run (default {retries})")
+    p.add_argument(
+        "--busy",
+        type=int,
+        default=0,
+        help="busy-loop processes beside each run (a learner's stand-in; --max-others counts past them)",
+    )
     p.add_argument("-q", "--quiet", action="store_true", help="no per-run lines")
 
 
@@ -321,4 +344,5 @@ def run_alternating(contenders: list, args: argparse.Namespace, cwd: str, on_res
         retries=args.retries,
         on_result=on_result,
         startup_limit=args.startup_limit,
+        busy=getattr(args, "busy", 0),
     )

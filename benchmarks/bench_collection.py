@@ -26,8 +26,9 @@ Task PickCube-v1, ``obs_mode="state"``, random actions, ``max_episode_steps=50``
   (``track_traj_ids=False``), ``noinf`` (``inference_mode=False``), ``t1`` (one torch thread),
   ``workers`` (``in_process=False``: every sub-env in a worker process, none in this one), ``inproc``
   (``in_process=True``: sub-env 0 in this process; without either, the machine decides),
-  ``em`` (``EpisodeMetrics()`` after the repeat). The README's pipeline is ``batched:t1,rp,dev,em``
-  with ``--repeat 2``;
+  ``em`` (``EpisodeMetrics()`` after the repeat), ``sched=batch|other`` (every worker thread put under
+  Linux's ``SCHED_BATCH`` / ``SCHED_OTHER`` once built, whatever the library set; the policies found are
+  reported as ``workers_sched``). The README's pipeline is ``batched:t1,rp,dev,em`` with ``--repeat 2``;
 - ``parallel``: ``Collector(ParallelEnv(N, lambda: TransformedEnv(ManiSkillEnv(id,
   obs_mode="state", max_episode_steps=50), CPUUnbatch())), policy=None)``, what TorchRL
   users write by habit (``Compose(CPUUnbatch(), ActionRepeat(2))`` inside the workers for
@@ -52,7 +53,7 @@ Task PickCube-v1, ``obs_mode="state"``, random actions, ``max_episode_steps=50``
   policy process directly, TorchRL's set-up for process workers); ``async:lib``:
   ``AsyncPoolCollector(ManiSkillAsyncEnvPool(id, N, repeat=r))``, the library's path past lockstep
   (lean workers, the repeat inside them, random actions; ``min=K``: ``min_get``, ``mlp``: the
-  ``Linear -> Tanh`` policy).
+  ``Linear -> Tanh`` policy, ``sched=batch|other`` as for ``batched``).
 
 **Frames are agent steps for every contender**: a sim step taken on an agent's action; a reset
 is never a frame. TorchRL's collectors count their frames, agent steps (``step_and_maybe_reset``

@@ -247,6 +247,32 @@ def _parse_options(spec: str) -> tuple[str, dict[str, str]]:
     return kind, opts
 
 
+def _set_workers_policy(opts: dict) -> dict:
+    """``sched=batch|other``: every thread of this process's descendants (the worker processes) put
+    under Linux's ``SCHED_BATCH`` or ``SCHED_OTHER`` (a benchmark's override of what the library's
+    workers set for themselves); the policies found, as ``workers_sched``."""
+    import psutil
+
+    names = {getattr(os, "SCHED_OTHER", 0): "other", getattr(os, "SCHED_BATCH", 3): "batch"}
+    want = opts.get("sched")
+    if want is not None and want not in ("batch", "other"):
+        raise SystemExit(f"sched={want!r}: batch or other")
+    found = set()
+    for p in psutil.Process().children(recursive=True):
+        try:
+            tids = [int(t) for t in os.listdir(f"/proc/{p.pid}/task")]
+        except OSError:
+            continue
+        for tid in tids:
+            try:
+                if want is not None:
+                    os.sched_setscheduler(tid, getattr(os, f"SCHED_{want.upper()}"), os.sched_param(0))
+                found.add(names.get(os.sched_getscheduler(tid), "?"))
+            except OSError:
+                pass
+    return {"workers_sched": sorted(found)}
+
+
 def _time_collector(collector, seconds: float, meter: _CPUMeter) -> dict:
     it = iter(collector)
     next(it)  # warm-up: first reset and one batch, untimed
@@ -348,7 +374,9 @@ def child_batched(n: int, repeat: int, seconds: float, opts: dict) -> dict:
         collector = batched_collector(n, repeat, opts)
     except Exception as err:  # noqa: BLE001 - reported as a skip, e.g. no batched CPU env yet
         return {"skipped": f"ManiSkillEnv({ENV_ID!r}, num_envs={n}) raised {type(err).__name__}: {err}"}
+    sched = _set_workers_policy(opts)
     out = _time_collector(collector, seconds, meter)
+    out.update(sched)
     from torchrl.envs import TransformedEnv
 
     env = collector.env
@@ -534,7 +562,9 @@ def child_async_lib(n: int, repeat: int, seconds: float, opts: dict) -> dict:
     collector = AsyncPoolCollector(
         pool, policy, frames_per_batch=EPISODE * n, total_frames=-1, min_get=int(opts.get("min", 1))
     )
+    sched = _set_workers_policy(opts)
     out = _time_collector(collector, seconds, meter)
+    out.update(sched)
     out.update(_ran(1, "inference", False, "agent steps: the collector's transitions (a reset is no frame)"))
     return out
 

@@ -43,6 +43,7 @@ PRELOAD = (
 #: sub-env 0 in the main process).
 CONTENDERS = {
     "gym": ("gym", "gym", "gym (AsyncVectorEnv of CPUGymWrapper + ActionRepeatWrapper)"),
+    "gym-nograd": ("gym", "gym", "gym, its sleeps without the grad-mode factor"),
     "readme": (
         "batched:t1,rp,dev,em",
         "batched:t1,rp,dev,em,workers",
@@ -54,9 +55,18 @@ CONTENDERS = {
 TORCHRL_ASYNC = ("async:auto", "async:auto", "TorchRL AsyncBatchedCollector over single envs")
 
 
+#: The contenders whose sims step in autograd's grad mode (gymnasium's worker loop): their sleeps carry
+#: the grad-mode factor measured in the run, ``gym-nograd``'s none (``replay_task.GRAD_FACTOR_ENV``).
+GRAD_MODE = ("gym",)
+
+
 def spec_for(contender: str, n: int) -> str:
-    one, many, _ = TORCHRL_ASYNC if contender == "torchrl-async" else CONTENDERS[contender]
-    return one if n == 1 else many
+    """The pipeline spec of ``contender`` at ``n``; ``name+options`` adds options to its spec (e.g.
+    ``async+sched=other``: collection_pipelines' options, comma-separated)."""
+    name, _, extra = contender.partition("+")
+    one, many, _ = TORCHRL_ASYNC if name == "torchrl-async" else CONTENDERS[name]
+    spec = one if n == 1 else many
+    return f"{spec}{',' if ':' in spec else ':'}{extra}" if extra else spec
 
 
 # ----------------------------------------------------------------------------- the emulated machine
@@ -83,13 +93,15 @@ def lockstep_share(
     """What ``n`` envs in lockstep reach of ``n`` independent ones with these step times (``[passes,
     episodes, steps]``, each shrunk by ``spread`` around their mean): the mean lockstep unit (``sims``
     consecutive sim steps, one draw of a pass each) over the mean of the slowest of ``n`` envs, each
-    on its own episode, at one step index. No overhead, no resets: the ceiling the times allow."""
+    on its own episode, at one step index (``n`` distinct episodes, as the replay's envs play them; past
+    the recorded episodes, each as often as the others). No overhead, no resets: the ceiling the times
+    allow."""
     mean = float(step_times.mean())
     times = mean + spread * (step_times - mean)
     passes, episodes, steps = times.shape
     rng = np.random.default_rng(seed)
     k = rng.integers(steps - sims + 1, size=(trials, 1))
-    e = rng.integers(episodes, size=(trials, n))
+    e = rng.permuted(np.tile(np.arange(episodes), (trials, -(-n // episodes))), axis=1)[:, :n]
     unit = sum(times[rng.integers(passes, size=(trials, n)), e, k + j] for j in range(sims))
     return sims * mean / float(unit.max(axis=1).mean())
 
@@ -122,13 +134,14 @@ def prepare_child() -> None:
 
 
 def run_child(spec: str, n: int, repeat: int, seconds: float) -> None:
-    """One measurement in this fresh process: ``ceiling:<raw|independent|lockstep>`` or a pipeline
-    of ``collection_pipelines`` (which reports it and ends the process)."""
+    """One measurement in this fresh process: ``ceiling:<raw|independent|lockstep|real>``, ``grad``
+    (:func:`grad_factor`) or a pipeline of ``collection_pipelines`` (which reports it and ends the
+    process)."""
     prepare_child()
-    if spec.startswith("ceiling:"):
+    if spec.startswith("ceiling:") or spec == "grad":
         from benchmarks.alternate import child_result
 
-        out = ceiling(spec.split(":", 1)[1], n, seconds)
+        out = grad_factor(seconds) if spec == "grad" else ceiling(spec.split(":", 1)[1], n, seconds)
         child_result(**out)
         sys.stdout.flush()
         os._exit(0)
@@ -224,4 +237,57 @@ def ceiling(kind: str, n: int, seconds: float) -> dict:
         "cpu_s": 0.0,
         "startup_s": startup,
         "per_env_steps_per_s": statistics.median(r[2] / r[3] for r in rows),
+    }
+
+
+def grad_factor(seconds: float) -> dict:
+    """What a real PickCube-v1 episode (a seeded reset and 50 steps of random actions, one torch
+    thread) costs in autograd's grad mode over inference mode, on this machine now: two envs in this
+    process, one made and stepped under :func:`torch.inference_mode` (the library's workers), one in
+    grad mode (gymnasium's worker loop), play the same episodes with the same actions, alternating,
+    for ``2 * seconds``; the factor is the ratio of their medians (``pairs``: each grad-mode episode
+    over the inference-mode one before it, min and max)."""
+    import gymnasium as gym
+    import torch
+
+    from benchmarks.alternate import child_ready
+
+    torch.set_num_threads(1)
+    kwargs = {"num_envs": 1, "obs_mode": "state", "sim_backend": "physx_cpu", "render_backend": "none"}
+    with torch.inference_mode():
+        inference = gym.make(REAL_ID, **kwargs)
+    grad = gym.make(REAL_ID, **kwargs)
+    rng = np.random.default_rng(0)
+    low, high = grad.action_space.low, grad.action_space.high
+    actions = [torch.as_tensor(rng.uniform(low, high).astype(low.dtype)) for _ in range(EPISODE)]
+
+    def episode(env, seed: int) -> float:
+        t0 = time.perf_counter()
+        env.reset(seed=seed)
+        for a in actions:
+            env.step(a)
+        return time.perf_counter() - t0
+
+    with torch.inference_mode():
+        episode(inference, 0)
+    episode(grad, 0)  # warm-up, both
+    startup = child_ready()
+    times: dict[bool, list[float]] = {False: [], True: []}
+    began = time.perf_counter()
+    while time.perf_counter() - began < 2 * seconds or len(times[True]) < 3:
+        seed = len(times[True])
+        with torch.inference_mode():
+            times[False].append(episode(inference, seed))
+        times[True].append(episode(grad, seed))
+    wall = time.perf_counter() - began
+    pairs = [g / i for i, g in zip(times[False], times[True])]
+    return {
+        "units": len(pairs),
+        "wall_s": wall,
+        "cpu_s": 0.0,
+        "startup_s": startup,
+        "grad_factor": statistics.median(times[True]) / statistics.median(times[False]),
+        "pairs_min": min(pairs),
+        "pairs_max": max(pairs),
+        "inference_steps_per_s": (EPISODE + 1) / statistics.median(times[False]),
     }

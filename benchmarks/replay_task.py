@@ -12,9 +12,15 @@ PickCube-v1 (``obs_mode="state"``, CPU sim, ``max_episode_steps=50``), recorded 
 seeded random actions; ``step_s``: each sim step's wall time, 3 passes over them):
 
 - ``reset(seed=s)`` replays the episode recorded with seed ``s % 20`` (seeds 0-19 are the real
-  episodes, bit for bit); ``reset()`` without a seed draws the episode from torch's global RNG, as
-  ManiSkill's unseeded reset draws its episode there (workers forked with one RNG state replay the
-  same episode, as real ones do);
+  episodes, bit for bit); ``reset()`` without a seed replays the recorded episode after the one this
+  env last played (``(e + 1) % 20``; an env that has played none draws it from torch's global RNG,
+  where ManiSkill's unseeded reset draws its episode). So every env goes on from its own offset, and
+  ``N <= 20`` envs seeded ``s, s + 1, ...`` (gymnasium's and the library's rule) replay ``N``
+  distinct episodes after every reset, as real envs do: their episodes differ even when they reset
+  alike, since their actions differ, while the replay ignores its actions. (Drawn from torch's RNG,
+  the episodes of workers forked from one process were all the same after their first
+  auto-reset: gym's lockstep then waited on ``N`` copies of one episode's step times.) Past 20 envs
+  some replay one episode at once;
 - ``step(action)`` ignores the action and returns the recorded step: the observation, reward and
   info with the task's keys, shapes and dtypes (``[1, ...]`` torch tensors, as a ``num_envs=1``
   CPU-sim env), ``terminated`` from ``success`` as ``BaseEnv.step`` computes it, ``truncated``
@@ -27,9 +33,11 @@ seeded random actions; ``step_s``: each sim step's wall time, 3 passes over them
   ``"h200"``: the mean time per step with the resets counted in (one per 50 steps), as a loop of
   steps and resets measures a machine's steps/s. The times are those of steps under
   :func:`torch.inference_mode` (the library's workers step so); a step taken with autograd's grad
-  mode on (gymnasium's worker loop) lasts :data:`GRAD_FACTOR` times longer, as a real sim's does
-  (``grad_factor``). The env's own work counts in that time: it sleeps what is left of it
-  (:func:`time.sleep`, with Linux's timer slack at 1 ns in the sleeping thread).
+  mode on (gymnasium's worker loop) lasts longer, as a real sim's does: ``grad_factor`` times, else
+  ``$MANISKILL_REPLAY_GRAD_FACTOR``'s (read where the env is made), else :data:`GRAD_FACTOR`'s (the
+  H200's); ``1`` drops it, and ``bench_many_cores`` measures it on its machine in the same run. The
+  env's own work counts in that time: it sleeps what is left of it (:func:`time.sleep`, with
+  Linux's timer slack at 1 ns in the sleeping thread).
 
 Register it by importing this module; a process that has not can name it as
 ``"benchmarks.replay_task:ReplayPickCube-v1"`` (:data:`REPLAY_ID`), gymnasium's ``module:EnvId``
@@ -68,6 +76,7 @@ __all__ = [
     "DATA",
     "ENV_ID",
     "GRAD_FACTOR",
+    "GRAD_FACTOR_ENV",
     "REPLAY_ID",
     "SPREAD_ENV",
     "STEP_MS_ENV",
@@ -85,6 +94,7 @@ REPLAY_ID = f"benchmarks.replay_task:{ENV_ID}"
 DATA = Path(__file__).resolve().parent / "replay" / "pickcube_state.npz"
 STEP_MS_ENV = "MANISKILL_REPLAY_STEP_MS"
 SPREAD_ENV = "MANISKILL_REPLAY_SPREAD"
+GRAD_FACTOR_ENV = "MANISKILL_REPLAY_GRAD_FACTOR"
 #: Mean sim-step times (ms) of machines on record (benchmarks/RESULTS.md, DESIGN.md): the lent H200
 #: host (2026-11-28), one raw PickCube-v1 env under inference mode (484 steps/s), and each of 15
 #: independent ones together (5,623 steps/s for 15); ``"recorded"``: the recording's own times.
@@ -213,7 +223,7 @@ class ReplayPickCube(BaseEnv):
         render_backend: str | None = "gpu",
         step_ms: float | str | None = None,
         spread: float | str | None = None,
-        grad_factor: float = GRAD_FACTOR,
+        grad_factor: float | str | None = None,
         timing_seed: int | None = None,
         data: str | None = None,
     ) -> None:
@@ -258,11 +268,16 @@ class ReplayPickCube(BaseEnv):
         # each recorded time t as mean + spread * (t - mean), then scaled: the same mean, its spread shrunk
         self._step_times = shrink_times(rec["step_s"], self._spread) * self._time_scale
         self._reset_times = shrink_times(rec["reset_s"], self._spread) * self._time_scale
+        if grad_factor is None:
+            grad_factor = os.environ.get(GRAD_FACTOR_ENV) or GRAD_FACTOR
         self._grad_factor = float(grad_factor)
+        if not self._grad_factor > 0:
+            raise ValueError(f"{ENV_ID}: grad_factor must be positive, got {grad_factor!r}.")
         self._timing = np.random.default_rng(timing_seed)
         #: seconds slept by this env (its steps and resets), and the sleeps' count
         self.slept_s, self.sleeps = 0.0, 0
         self._episode, self._step = 0, 0
+        self._played = False  # whether this env has replayed an episode (its unseeded reset goes on from it)
         self._init_raw_obs = torch.from_numpy(rec["reset_obs"][0:1].copy())
 
     # ------------------------------------------------------------------ what wrappers read
@@ -323,14 +338,17 @@ class ReplayPickCube(BaseEnv):
         if "reset_to_env_states" in options:
             raise NotImplementedError(f"{ENV_ID} replays recorded episodes: it cannot reset to a saved state.")
         episodes = len(self._recording["seeds"])
-        if seed is None:
+        if seed is None and self._played:
+            # the next recorded episode: each env goes on from its own offset (module docstring)
+            self._episode = (self._episode + 1) % episodes
+        elif seed is None:
             # ManiSkill's unseeded reset draws its episode from torch's global RNG.
             self._episode = int(torch.randint(episodes, ()).item())
         else:
             seed = int(seed[0]) if np.iterable(seed) else int(seed)
             self._episode = seed % episodes
             self._main_seed = [seed]
-        self._step = 0
+        self._step, self._played = 0, True
         self._elapsed_steps[:] = 0
         info = self.get_info()
         obs = torch.from_numpy(self._recording["reset_obs"][self._episode : self._episode + 1].copy())

@@ -118,21 +118,28 @@ def test_the_library_builds_it_in_workers():
 
 def test_gym_async_vector_env_builds_it():
     """gymnasium's ``AsyncVectorEnv(context="forkserver")`` of ``CPUGymWrapper(ActionRepeatWrapper)``:
-    the workers register the task by importing its module (``gym.make``'s ``module:EnvId`` rule)."""
+    the workers register the task by importing its module (``gym.make``'s ``module:EnvId`` rule).
+    After each auto-reset (unseeded, in workers forked with one torch RNG state) every worker replays
+    its own episode, the one after its last: the emulator's gym waits on distinct episodes, as the
+    library's engines do (issue 59: all replayed one)."""
     from maniskill_torchrl.wrappers import ActionRepeatWrapper, CPUGymWrapper
 
     # a lambda: cloudpickle sends it by value (this test module is not importable in the workers)
     thunk = lambda: CPUGymWrapper(  # noqa: E731
         ActionRepeatWrapper(gym.make(replay.REPLAY_ID, num_envs=1, step_ms=0.1, **KWARGS), 2)
     )
-    envs = gym.vector.AsyncVectorEnv([thunk] * 2, context="forkserver")
+    envs = gym.vector.AsyncVectorEnv([thunk] * 3, context="forkserver")
     try:
         obs, _ = envs.reset(seed=11)
         rec = replay.load_recording()
-        np.testing.assert_array_equal(obs, rec["reset_obs"][11:13])
+        np.testing.assert_array_equal(obs, rec["reset_obs"][11:14])
         obs, reward, *_ = envs.step(envs.action_space.sample())
-        np.testing.assert_array_equal(obs, rec["obs"][11:13, 1])
-        np.testing.assert_array_equal(reward, rec["reward"][11:13, 0] + rec["reward"][11:13, 1])
+        np.testing.assert_array_equal(obs, rec["obs"][11:14, 1])
+        np.testing.assert_array_equal(reward, rec["reward"][11:14, 0] + rec["reward"][11:14, 1])
+        for episode in (1, 2):  # 25 outer steps of 2 (the time limit, 50), then gym's autoreset step
+            for _ in range(25 if episode == 1 else 26):
+                envs.step(envs.action_space.sample())
+            assert list(envs.call("episode")) == [(11 + i + episode) % 20 for i in range(3)], episode
     finally:
         envs.close()
 
@@ -207,24 +214,51 @@ def test_sleeps_the_scaled_recorded_times(no_sleep, monkeypatch):
     with torch.no_grad():
         env.step(torch.zeros(1, 8))
     np.testing.assert_allclose(no_sleep, [one * replay.GRAD_FACTOR, one])
+    # the factor from the environment (what bench_many_cores measures), or a keyword; 1 drops it
+    monkeypatch.setenv(replay.GRAD_FACTOR_ENV, "1.5")
+    for env, factor in (
+        (gym.make(replay.REPLAY_ID, num_envs=1, step_ms=1.0, spread=0.0, **KWARGS), 1.5),
+        (gym.make(replay.REPLAY_ID, num_envs=1, step_ms=1.0, spread=0.0, grad_factor=1, **KWARGS), 1.0),
+    ):
+        env.reset(seed=0)
+        no_sleep.clear()
+        with torch.enable_grad():
+            env.step(torch.zeros(1, 8))
+        np.testing.assert_allclose(no_sleep, [one * factor])
 
 
-def test_unseeded_reset_draws_from_torchs_rng(no_sleep):
-    env = gym.make(replay.REPLAY_ID, num_envs=1, **KWARGS).unwrapped
-    torch.manual_seed(123)
-    episodes = []
-    for _ in range(6):
-        env.reset()
-        episodes.append(env.episode)
-    torch.manual_seed(123)
-    again = []
-    for _ in range(6):
-        env.reset()
-        again.append(env.episode)
-    assert episodes == again and len(set(episodes)) > 1
+def test_each_env_goes_on_from_its_own_offset(no_sleep):
+    """An unseeded reset replays the episode after the one the env last played, whatever torch's RNG
+    says: envs seeded 18, 19, 20, 21 (gymnasium's ``seed + i``), each reset with one torch RNG state
+    (workers forked from one process), replay 4 distinct episodes after every reset."""
+    envs = [gym.make(replay.REPLAY_ID, num_envs=1, **KWARGS).unwrapped for _ in range(4)]
+    for i, env in enumerate(envs):
+        env.reset(seed=18 + i)
+    for k in range(1, 23):
+        for env in envs:
+            torch.manual_seed(0)
+            env.reset()
+        assert [env.episode for env in envs] == [(18 + i + k) % 20 for i in range(4)], k
     state = torch.get_rng_state()
-    env.reset(seed=25)  # a seeded reset: episode 25 % 20, torch's RNG untouched
-    assert env.episode == 5 and torch.equal(torch.get_rng_state(), state)
+    envs[0].reset(seed=25)  # a seeded reset: episode 25 % 20, torch's RNG untouched
+    assert envs[0].episode == 5 and torch.equal(torch.get_rng_state(), state)
+    envs[0].reset()
+    assert envs[0].episode == 6 and torch.equal(torch.get_rng_state(), state)
+
+
+def test_first_unseeded_reset_draws_from_torchs_rng(no_sleep):
+    """An env that has played no episode draws its first from torch's global RNG (ManiSkill's
+    unseeded reset draws there), then goes on from it."""
+    drawn = []
+    for _ in range(2):
+        env = gym.make(replay.REPLAY_ID, num_envs=1, **KWARGS).unwrapped
+        torch.manual_seed(123)
+        env.reset()
+        env.reset()
+        drawn.append((env.episode, torch.get_rng_state()))
+    first = int(torch.randint(20, (), generator=torch.Generator().manual_seed(123)))
+    assert drawn[0][0] == drawn[1][0] == (first + 1) % 20
+    assert torch.equal(drawn[0][1], drawn[1][1])
 
 
 def test_refuses_what_was_not_recorded():
