@@ -44,6 +44,11 @@ def _put(tree: dict, key: Any, value: Any) -> None:
     tree[key[-1]] = value
 
 
+def _read(store: RowStore | TensorDictBase, rows: np.ndarray) -> TensorDictBase:
+    """Rows ``rows`` of the sent rows ``store``, a fresh ``[k]`` TensorDict."""
+    return store.read(rows) if isinstance(store, RowStore) else store[torch.from_numpy(rows)]
+
+
 class ManiSkillAsyncEnvPool(AsyncEnvPool):
     """``num_envs`` ManiSkill CPU-sim envs, one worker process each, as TorchRL's :class:`~torchrl.envs.AsyncEnvPool`.
 
@@ -300,6 +305,8 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         if old is not None:
             waiting = self._engine.stepping()
             waiting[env_idx] = False  # just sent: their rows are the new ones
+            for _, mask in self._older:  # their rows are in older ones still
+                waiting &= ~mask
             if waiting.any():
                 self._older.append((old, waiting))
         if RowStore.supports(tensordict):
@@ -313,35 +320,30 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
     def _read_sent(self, rows: np.ndarray) -> TensorDictBase:
         """What the envs ``rows`` were sent to step, from the rows each was written in."""
         if not self._older:
-            sent = self._sent
-            return sent.read(rows) if isinstance(sent, RowStore) else sent[torch.from_numpy(rows)]
+            return _read(self._sent, rows)
         with self._pool_lock:
             parts, left = [], np.ones(len(rows), dtype=bool)
             for store, mask in [*self._older, (self._sent, None)]:
                 mine = left.copy() if mask is None else mask[rows] & left
                 if mine.any():
-                    where = rows[mine]
-                    parts.append(
-                        (
-                            np.flatnonzero(mine),
-                            store.read(where) if isinstance(store, RowStore) else store[torch.from_numpy(where)],
-                        )
-                    )
+                    parts.append((np.flatnonzero(mine), _read(store, rows[mine])))
                     if mask is not None:
-                        mask[where] = False
+                        mask[rows[mine]] = False
                     left &= ~mine
             self._older = [(store, mask) for store, mask in self._older if mask.any()]
         if len(parts) == 1:
             return parts[0][1]
         keys = [set(part.keys(True, True)) for _, part in parts]
         common = set.intersection(*keys)
-        warnings.warn(
-            f"{self!r}: the envs received together were sent different entries (a policy changed while "
-            f"steps were under way); their transitions hold the common entries, without "
-            f"{sorted(set.union(*keys) - common, key=str)}. Receive such envs apart (env_index=...) to keep them.",
-            RuntimeWarning,
-            stacklevel=4,
-        )
+        if common != set.union(*keys):
+            warnings.warn(
+                f"{self!r}: the envs received together were sent different entries (a policy changed while "
+                f"steps were under way); their transitions hold the common entries, without "
+                f"{sorted(set.union(*keys) - common, key=str)}. Receive such envs apart (env_index=...) to keep "
+                "them.",
+                RuntimeWarning,
+                stacklevel=4,
+            )
         out = torch.cat([part.select(*common) for _, part in parts])
         order = np.argsort(np.concatenate([where for where, _ in parts]), kind="stable")
         return out[torch.from_numpy(order)]
@@ -615,6 +617,9 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
             self.async_reset_send(env_index=env_idx.tolist())
             out[torch.from_numpy(env_idx)] = self.async_reset_recv(min_get=len(env_idx))
         return out
+
+    # TorchRL's AsyncEnvPool.reset resets every env, whatever the "_reset" mask; EnvBase's takes it.
+    reset = EnvBase.reset
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         self.async_step_send(tensordict, env_index=list(range(self.num_envs)))
