@@ -70,7 +70,11 @@ class AsyncPoolCollector(BaseCollector):
     stepped or reset by another caller in between, every env restarts, and the last kept
     transition of each unfinished episode is marked ``("next", "truncated")``. An exception (in
     the policy, say) leaves the pool open and idle: the collector only closes it in
-    ``shutdown()``.
+    ``shutdown()``. While an iterator is open, the pool's envs have steps under way and the pool
+    is busy: exhaust or close the iterator before calling the pool yourself. Any pause between
+    two batches is fine (the pool's watchdog counts only its own waits). Ctrl-C raises
+    ``KeyboardInterrupt`` as is, after a drain of at most a few seconds: the pool is left idle
+    for the user's handler, and the next iteration starts new episodes.
 
     :meth:`cycle_stats` says where the main process spends each cycle (wait, policy, the rest).
 

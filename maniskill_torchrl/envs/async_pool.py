@@ -62,10 +62,12 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
             last real step's observation; what :class:`~maniskill_torchrl.transforms.ActionRepeat`
             gives). Defaults to 1.
         info_keys (list of str, optional): as in :class:`~maniskill_torchrl.ManiSkillEnv`.
-        warn_after (float, optional): seconds an env may take over one call before a warning.
-            Defaults to 30. None: never.
-        fail_after (float, optional): seconds an env may take over one call before the pool is
-            closed with an error naming it (a stuck worker). Defaults to 300. None: never.
+        warn_after (float, optional): seconds a receive may wait for one env's call before a
+            warning. Only waiting counts: the caller's own time between two calls (a learner's
+            update) does not. Defaults to 30. None: never.
+        fail_after (float, optional): seconds a receive may wait for one env's call before the
+            call raises an error naming it, its worker is killed and the pool closed (a stuck
+            worker). Defaults to 300. None: never.
         **kwargs: ManiSkill's ``gym.make`` arguments (``obs_mode``, ``control_mode``,
             ``max_episode_steps``...), given to every env.
 
@@ -80,7 +82,11 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
     workers fork from one process, and ManiSkill's unseeded resets would repeat one another).
 
     The sync calls (``reset``, ``step``, ``rollout``, a TorchRL ``Collector``) step every env
-    together, as TorchRL's pools do; the asynchronous calls step some and return whichever are
+    together, as TorchRL's pools do; a reset with TorchRL's ``"_reset"`` mask (what
+    ``TransformedEnv`` and the collectors send when some episodes end) resets only the envs it
+    asks, and TorchRL keeps the others' roots. Each transition holds the entries its step was
+    sent with, nothing left from an earlier send (a policy that wrote other entries). The
+    asynchronous calls step some and return whichever are
     done: ``async_step_and_maybe_reset_recv`` returns the transitions and the roots of the next
     steps, an env whose episode ended already reset there. Each env has one call under way at
     most: ``async_step_recv`` returns the envs sent ``async_step_send`` only, and
