@@ -300,8 +300,11 @@ class ManiSkillWrapper(_EnvWrapper):
     scene_state=state)`` (or :meth:`reset_to_state`) restores it, as Isaac Lab's
     wrapper does.
 
-    ``frame_skip=k`` steps each action up to ``k`` times, sums the rewards and stops
-    as soon as any env is done, as :class:`~torchrl.envs.GymLikeEnv` does.
+    ``frame_skip=k`` steps each action up to ``k`` times, sums the rewards (a bool
+    reward counts its steps) and stops as soon as any env is done, as
+    :class:`~torchrl.envs.GymLikeEnv` does. With many envs one env's end stops every
+    env's repeat: at GPU batch sizes most steps are then single ones, unlike
+    ManiSkill's ``ActionRepeatWrapper``, which repeats each env until its own end.
     Auto-resetting envs (``ManiSkillVectorEnv(auto_reset=True)``, gymnasium's
     ``Autoreset``) are refused: TorchRL resets done envs itself.
 
@@ -610,6 +613,8 @@ class ManiSkillWrapper(_EnvWrapper):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = self._sim_action(tensordict)
         obs, reward, terminated, truncated, info = self._env.step(action)
+        if self.wrapper_frame_skip > 1 and reward.dtype == torch.bool:
+            reward = reward.long()  # GymLikeEnv's 0 + reward: bool + bool stays bool
         for _ in range(self.wrapper_frame_skip - 1):
             if (terminated | truncated).any():
                 break

@@ -76,6 +76,7 @@ def _assert_matches_raw(env, raw, *, steps=4, repeat=1) -> None:
     for _ in range(steps):
         td = env.step(env.rand_action(td))
         obs, reward, terminated, truncated, info = raw.step(_raw_action(td))
+        reward = 0 + reward  # GymLikeEnv's sum: a bool reward counts its steps
         for _ in range(repeat - 1):
             if (terminated | truncated).any():
                 break
@@ -183,6 +184,28 @@ class TestManiSkillRawParity:
         # Copies where ManiSkill reuses buffers: no step overwrites another.
         obs = rollout["next", "observation"]
         assert not (obs[:, 1:] == obs[:, :-1]).all(-1).any()
+
+    def test_frame_skip_counts_bool_rewards(self):
+        # Sparse rewards are bool (info["success"]): summed as GymLikeEnv sums them.
+        import gymnasium as gym
+
+        def rewarded():
+            return gym.wrappers.TransformReward(
+                _raw_env(obs_mode="state"),
+                lambda r: torch.ones_like(r, dtype=torch.bool),
+            )
+
+        # check_env_specs steps its env: one of its own, apart from the compared pair.
+        checked = ManiSkillWrapper(rewarded(), frame_skip=3)
+        env, raw = ManiSkillWrapper(rewarded(), frame_skip=3), rewarded()
+        try:
+            check_env_specs(checked, seed=_SEED)
+            _assert_matches_raw(env, raw, steps=2, repeat=3)
+            td = env.rand_step(env.reset(seed=_SEED))
+            assert td["next", "reward"].tolist() == [[3.0]]
+        finally:
+            for one in (checked, env, raw):
+                one.close()
 
     @pytest.mark.parametrize("env_id", ["DrawTriangle-v1", "TwoRobotPickCube-v1"])
     def test_other_tasks_match_maniskill(self, env_id, raw_envs, make):
