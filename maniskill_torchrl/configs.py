@@ -95,6 +95,7 @@ class ManiSkillEnvConfig(EnvLibsConfig):
     pixels_only: bool = False
     pixels_key: str = "pixels"
     info_keys: list[str] | None = None
+    frame_skip: int = 1
     device: str | None = None
     batch_size: list[int] | None = None
     allow_done_after_reset: bool = False

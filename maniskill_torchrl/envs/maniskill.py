@@ -204,7 +204,11 @@ class _ResetSeeds:
     """The seeds of the full resets.
 
     After :meth:`set` ``(s)``, :meth:`draw` gives ``s``, then the draws of
-    ``numpy.random.RandomState(s)``; ``None`` until seeded.
+    ``numpy.random.RandomState(s)``; ``None`` until seeded. ManiSkill seeds its
+    episode RNG (and forks torch's) only in a seeded ``reset``: an unseeded one
+    draws from the process's global RNG, so two envs of one process, or one env
+    after other code used that RNG, would not repeat. Partial resets are unseeded,
+    as ManiSkill's ``options={"env_idx": ...}`` resets are.
     """
 
     def __init__(self) -> None:
@@ -332,6 +336,9 @@ class ManiSkillWrapper(_EnvWrapper):
         allow_done_after_reset (bool, optional): passed to
             :class:`~torchrl.envs.EnvBase`. Defaults to ``False``.
 
+    ManiSkill reference: Tao et al., "ManiSkill3: GPU Parallelized Robotics
+    Simulation and Rendering for Generalizable Embodied AI", arXiv:2410.00425.
+
     Examples:
         >>> import gymnasium as gym
         >>> import mani_skill.envs  # doctest: +SKIP
@@ -345,7 +352,9 @@ class ManiSkillWrapper(_EnvWrapper):
         >>> td["next", "success"].shape  # doctest: +SKIP
         torch.Size([1, 3])
 
-    .. seealso:: :class:`ManiSkillEnv`, and ``ManiSkillEnvConfig`` for Hydra.
+    .. seealso:: :class:`ManiSkillEnv`, and
+        :class:`~torchrl.trainers.algorithms.configs.envs_libs.ManiSkillEnvConfig`
+        for Hydra.
     """
 
     git_url = "https://github.com/haosulab/ManiSkill"
@@ -911,12 +920,21 @@ class ManiSkillEnv(ManiSkillWrapper, metaclass=_ManiSkillEnvMeta):
         num_workers (int, optional): above 1, a :class:`~torchrl.envs.ParallelEnv`
             of ``num_workers`` such envs, one per process, is returned. Defaults to
             ``1``.
-        device, batch_size, from_pixels, pixels_only, pixels_key, info_keys,
-        frame_skip, allow_done_after_reset: see :class:`ManiSkillWrapper`.
-            ``from_pixels=True`` sets ``render_mode="rgb_array"``.
+        device (torch.device, optional): see :class:`ManiSkillWrapper`.
+        batch_size (torch.Size, optional): see :class:`ManiSkillWrapper`.
+        from_pixels (bool, optional): see :class:`ManiSkillWrapper`; it sets
+            ``render_mode="rgb_array"``.
+        pixels_only (bool, optional): see :class:`ManiSkillWrapper`.
+        pixels_key (NestedKey, optional): see :class:`ManiSkillWrapper`.
+        info_keys (list of str, optional): see :class:`ManiSkillWrapper`.
+        frame_skip (int, optional): see :class:`ManiSkillWrapper`.
+        allow_done_after_reset (bool, optional): see :class:`ManiSkillWrapper`.
         **kwargs: passed to ``gym.make``: ``obs_mode``, ``control_mode``,
             ``sim_backend`` (``"auto"``, ``"cpu"``, ``"gpu"``), ``render_mode``,
             ``max_episode_steps``...
+
+    ManiSkill reference: Tao et al., "ManiSkill3: GPU Parallelized Robotics
+    Simulation and Rendering for Generalizable Embodied AI", arXiv:2410.00425.
 
     Examples:
         >>> from torchrl.envs import ManiSkillEnv
@@ -927,7 +945,8 @@ class ManiSkillEnv(ManiSkillWrapper, metaclass=_ManiSkillEnvMeta):
         >>> td["next", "reward"].shape  # doctest: +SKIP
         torch.Size([1, 1])
 
-    .. seealso:: ``ManiSkillEnvConfig``, its Hydra config.
+    .. seealso:: :class:`~torchrl.trainers.algorithms.configs.envs_libs.ManiSkillEnvConfig`,
+        its Hydra config.
     """
 
     def __init__(self, env_name: str, *, num_envs: int = 1, **kwargs: Any) -> None:

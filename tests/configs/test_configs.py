@@ -52,6 +52,23 @@ def test_registered_in_torchrls_groups(group, name):
     assert node._target_ == REGISTERED[group, name]._target_
 
 
+def test_every_keyword_argument_of_the_adapter_is_a_config_field():
+    """TorchRL's contributor rule: each constructor argument is a field of the env's config."""
+    import dataclasses
+    import inspect
+
+    from maniskill_torchrl.envs import maniskill as adapter
+
+    wanted = {"num_workers"}  # the metaclass's, in front of ManiSkillEnv's own
+    for cls in (adapter.ManiSkillWrapper, adapter.ManiSkillEnv):
+        for name, param in inspect.signature(cls.__init__).parameters.items():
+            if param.kind in (param.KEYWORD_ONLY, param.POSITIONAL_OR_KEYWORD) and name not in ("self", "env"):
+                wanted.add(name)
+    wanted.add("frame_skip")  # read from **kwargs by TorchRL's _EnvWrapper
+    fields = {field.name for field in dataclasses.fields(configs.ManiSkillEnvConfig)}
+    assert wanted <= fields, sorted(wanted - fields)
+
+
 def test_env_config_builds_the_library_env():
     node = configs.ManiSkillEnvConfig(env_name=TASK, obs_mode="state", max_episode_steps=4)
     env = _build(node)
