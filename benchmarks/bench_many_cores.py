@@ -556,8 +556,8 @@ def report(results: dict, runs: list[dict], settings: dict, csv_path: str | None
         f"Machine: {settings.get('machine') or machine_line()}; date {settings.get('date') or dt.date.today()}. "
         f"Emulated: step {1e3 * mean_step:.3f} ms mean (--step-ms {settings['step_ms']}), reset "
         f"{1e3 * mean_reset:.2f} ms, spread {spread:g}; repeat {repeat}; every env its own episodes; gym's sleeps "
-        f"x {settings.get('grad_factor', 1.254):.3f} in grad mode ({settings.get('grad_factor_note', 'the H200s')}), "
-        "gym-nograd's x 1.",
+        f"x {settings.get('grad_factor', 1.254):.2f} in grad mode, gym-nograd's x 1.",
+        f"Grad-mode factor: {settings.get('grad_factor_note', 'the H200s')}.",
         f"Command: {settings['command']}",
     ]
     if csv_path:

@@ -266,8 +266,9 @@ def draw_many_cores(csv_path: Path, png: Path) -> Path:
     for i, name in enumerate(pipelines):
         mine = sorted((r for r in rows if r["pipeline"] == name), key=lambda r: r["n"])
         xs = [r["n"] * (1 + 0.03 * (i - (len(pipelines) - 1) / 2)) for r in mine]
-        style = dict(color=f"C{i}", marker="os^D"[i % 4], ms=6, lw=2 if name != "gym" else 1.3)
-        if name == "gym":
+        gym = name.startswith("gym")  # gym, and gym-nograd (its sleeps without the grad-mode factor)
+        style = dict(color=f"C{i}", marker="os^D"[i % 4], ms=6, lw=1.3 if gym else 2)
+        if gym:
             style["ls"] = "--"
         err = [[r["frames_per_s"] - r["min"] for r in mine], [r["max"] - r["frames_per_s"] for r in mine]]
         left.errorbar(xs, [r["frames_per_s"] for r in mine], yerr=err, capsize=3, label=mine[0]["label"], **style)
