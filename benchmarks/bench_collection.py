@@ -83,7 +83,8 @@ and its workers' (``main cpu``: cores the main process keeps busy; ``workers cpu
 its worker processes keep busy, summed) and the cores other processes of the machine kept
 busy meanwhile (``others``). On a shared machine each run waits for the cores to be quiet
 first (``--max-busy``, ``--max-wait``), and a run disturbed by other jobs (``others`` above
-``--max-others``) is run again (``--retries``).
+``--max-others``) is run again (``--retries``). ``--busy K`` runs K busy-loop processes beside
+every run (a learner's stand-in; ``others`` then counts them, ``--max-others`` past them).
 
 ``--order n`` runs all rounds of one N (all repeats) before the next N, in the order ``--n``
 gives, so a sweep cut short has whole rounds of the N values it reached; ``--budget S``
