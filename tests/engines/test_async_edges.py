@@ -162,15 +162,20 @@ def test_a_stuck_worker_fails_at_fail_after_not_later():
 
 @pytest.mark.parametrize("min_get", [1, N])
 def test_any_frames_per_batch_drains_without_loss(pool, min_get):
-    """``frames_per_batch=1`` with ``N=3``: the steps under way at the end outnumber the room the
-    buffer had (before: ``ValueError`` from ``ndarray.take``, the drained transitions lost)."""
+    """``frames_per_batch=1`` with ``N=3``, left after its first batch: the two transitions kept and
+    the three steps under way outnumbered the buffer's room (before: ``ValueError`` from
+    ``ndarray.take`` with ``min_get=N``, now and then with ``min_get=1``; the drained transitions
+    lost)."""
     pool.set_seed(2)
-    collector = AsyncPoolCollector(pool, _zeros, frames_per_batch=1, total_frames=5, min_get=min_get)
-    first = list(collector)
+    collector = AsyncPoolCollector(pool, _zeros, frames_per_batch=1, min_get=min_get)
+    first = []
+    for batch in collector:
+        first.append(batch)
+        break  # the iterator is closed here, its steps under way drained
     kept = collector._cursor
-    collector.total_frames = 10 + kept
+    collector.total_frames = 1 + 8 + kept
     second = list(collector)
-    assert len(first) == 5 and len(second) == 5 + kept
+    assert len(second) == 8 + kept
     data = torch.cat(first + second)
     for i in range(N):
         _chained(data, i)
