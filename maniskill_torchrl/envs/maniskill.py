@@ -340,7 +340,7 @@ class ManiSkillWrapper(_EnvWrapper):
     Simulation and Rendering for Generalizable Embodied AI", arXiv:2410.00425.
 
     Examples:
-        >>> import gymnasium as gym
+        >>> import gymnasium as gym  # doctest: +SKIP
         >>> import mani_skill.envs  # doctest: +SKIP
         >>> from torchrl.envs import ManiSkillWrapper
         >>> base = gym.make("PickCube-v1", obs_mode="state")  # doctest: +SKIP
@@ -897,6 +897,12 @@ class _ManiSkillEnvMeta(_EnvPostInit):
         if num_workers > 1:
             from torchrl.envs import ParallelEnv
 
+            if len(args) > 1 or (not args and "env_name" not in kwargs):
+                raise TypeError(
+                    f"{cls.__name__} takes the task id, and only it, as a positional "
+                    f"argument: {cls.__name__}('PickCube-v1', num_workers=..., ...) "
+                    f"(got {len(args)} positional arguments)."
+                )
             env_name = args[0] if args else kwargs.pop("env_name")
 
             def make_env(_env_name=env_name, _kwargs=kwargs):
@@ -945,8 +951,8 @@ class ManiSkillEnv(ManiSkillWrapper, metaclass=_ManiSkillEnvMeta):
         >>> td["next", "reward"].shape  # doctest: +SKIP
         torch.Size([1, 1])
 
-    .. seealso:: :class:`~torchrl.trainers.algorithms.configs.envs_libs.ManiSkillEnvConfig`,
-        its Hydra config.
+    .. seealso:: Its Hydra config,
+        :class:`~torchrl.trainers.algorithms.configs.envs_libs.ManiSkillEnvConfig`.
     """
 
     def __init__(self, env_name: str, *, num_envs: int = 1, **kwargs: Any) -> None:

@@ -365,6 +365,9 @@ class TestManiSkillErrors:
             ManiSkillEnv(_TASK, batch_size=[3])
         with pytest.raises(TypeError, match="GymWrapper"):
             ManiSkillWrapper(gym.make("CartPole-v1"))
+        for args, kwargs in (((), {}), ((_TASK, "state"), {})):
+            with pytest.raises(TypeError, match="task id, and only it"):
+                ManiSkillEnv(*args, num_workers=2, **kwargs)
 
     def test_auto_reset_refused(self):
         from mani_skill.vector.wrappers.gymnasium import ManiSkillVectorEnv
