@@ -65,7 +65,7 @@ from support.helpers import close_envs, make_gym_env
 
 # ----------------------------------------------------------------------------- profiles
 LONG = os.environ.get("MANISKILL_TORCHRL_MODEL_RUNS", "") == "long"
-EXAMPLES = int(os.environ.get("MANISKILL_TORCHRL_MODEL_EXAMPLES", 60 if LONG else 6))
+EXAMPLES = int(os.environ.get("MANISKILL_TORCHRL_MODEL_EXAMPLES", 40 if LONG else 6))
 STEPS = int(os.environ.get("MANISKILL_TORCHRL_MODEL_STEPS", 50 if LONG else 20))
 SETTINGS = settings(
     max_examples=EXAMPLES,
