@@ -166,6 +166,8 @@ class AsyncPoolCollector(BaseCollector):
         """Receives at least ``min_get`` transitions into the buffer at the cursor; returns the
         roots of those envs' next steps (``timeout``: seconds, then a ``TimeoutError``)."""
         pool, start = self.env, self._cursor
+        if self._buffer is not None and start + pool.num_envs > len(self._buffer):
+            self._grow(start + pool.num_envs)
         fast = getattr(pool, "_into", None) is not None and self._buffer is not None
         if fast:  # one numpy copy per entry, straight from the pool's rows (ManiSkillAsyncEnvPool)
             rows, done, roots = pool._recv_into(start, self.min_get, timeout)
@@ -209,6 +211,16 @@ class AsyncPoolCollector(BaseCollector):
                     RuntimeWarning,
                     stacklevel=5,
                 )
+
+    def _grow(self, rows: int) -> None:
+        """A buffer of at least ``rows`` rows, the kept transitions moved in: iterations left early
+        (a ``break`` after one batch) keep more than they yield, and nothing kept is dropped."""
+        old, kept = self._buffer, self._cursor
+        self._buffer = old[:1].expand(max(rows, 2 * len(old))).clone()
+        self._buffer[:kept] = old[:kept]
+        self._arrays = {key: self._buffer.get(key).numpy() for key in self._buffer.keys(True, True)}
+        if isinstance(self.env, ManiSkillAsyncEnvPool):  # its plan wrote into the old buffer
+            self.env._plan_into({k: v for k, v in self._arrays.items() if k not in _MARKS})
 
     def _mark(self, rows: np.ndarray, done: np.ndarray, start: int, end: int) -> None:
         """Trajectory ids and step counts of the transitions at ``start:end`` (envs ``rows``), then

@@ -339,7 +339,7 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
             self._older = [(store, mask) for store, mask in self._older if mask.any()]
         if len(parts) == 1:
             return parts[0][1]
-        keys = [set(part.keys(True, True)) for _, part in parts]
+        keys = [set(part.keys(True, True)) - {self._env_idx_key} for _, part in parts]  # set for all below
         common = set.intersection(*keys)
         if common != set.union(*keys):
             warnings.warn(

@@ -162,18 +162,20 @@ def test_a_stuck_worker_fails_at_fail_after_not_later():
 
 @pytest.mark.parametrize("min_get", [1, N])
 def test_any_frames_per_batch_drains_without_loss(pool, min_get):
-    """``frames_per_batch=1`` with ``N=3``, left after its first batch: the two transitions kept and
+    """``frames_per_batch=1`` with ``N=3``, left after each first batch: the transitions kept and
     the three steps under way outnumbered the buffer's room (before: ``ValueError`` from
     ``ndarray.take`` with ``min_get=N``, now and then with ``min_get=1``; the drained transitions
-    lost)."""
+    lost). Every kept transition comes out later, in its episode's order."""
     pool.set_seed(2)
     collector = AsyncPoolCollector(pool, _zeros, frames_per_batch=1, min_get=min_get)
     first = []
-    for batch in collector:
-        first.append(batch)
-        break  # the iterator is closed here, its steps under way drained
+    for _ in range(4):  # each iteration keeps more than it yields (the third overflowed, found by the model)
+        iterator = iter(collector)
+        first.append(next(iterator))
+        iterator.close()  # its steps under way drained and kept
     kept = collector._cursor
-    collector.total_frames = 1 + 8 + kept
+    assert kept > N
+    collector.total_frames = 4 + 8 + kept
     second = list(collector)
     assert len(second) == 8 + kept
     data = torch.cat(first + second)
