@@ -624,8 +624,11 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
             out[torch.from_numpy(env_idx)] = self.async_reset_recv(min_get=len(env_idx))
         return out
 
-    # TorchRL's AsyncEnvPool.reset resets every env, whatever the "_reset" mask; EnvBase's takes it.
-    reset = EnvBase.reset
+    def reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDictBase:
+        """Resets every env, or the envs of TorchRL's ``"_reset"`` mask in ``tensordict`` (the others
+        keep their roots), as :meth:`~torchrl.envs.EnvBase.reset` does: TorchRL's ``AsyncEnvPool``
+        resets every env whatever the mask."""
+        return EnvBase.reset(self, tensordict, **kwargs)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         self.async_step_send(tensordict, env_index=list(range(self.num_envs)))
