@@ -38,12 +38,9 @@ def _require_maniskill() -> None:
 
 _require_maniskill()
 
-from maniskill_torchrl._internal.mp import prefer_spawn  # noqa: E402
-
-# As ``import torchrl`` does: without it, the first process any library starts (gymnasium's
-# AsyncVectorEnv, say) pins "fork", and a TorchRL ParallelEnv built later in this process forks
-# a parent holding a SAPIEN renderer and hangs (see maniskill_torchrl/_internal/mp.py).
-prefer_spawn()
+# No global state is changed here: the multiprocessing start method stays what it was (``import torchrl``,
+# which the envs import, sets "spawn" when nothing is set: TorchRL's own choice). The library's own
+# worker processes name their context (``multiprocessing.get_context``), as gymnasium's AsyncVectorEnv does.
 
 _EXPORTS = {
     "ManiSkillEnv": "maniskill_torchrl.envs",

@@ -16,8 +16,9 @@ Two facts, measured with ManiSkill 3.0.1 / SAPIEN 3 on Mesa lavapipe:
   leaves ``multiprocessing.get_start_method() == "fork"`` behind, and TorchRL imported after
   that takes it for the user's choice (it only sets ``"spawn"`` when nothing is set), so its
   ``ParallelEnv`` forks: with a SAPIEN renderer in the parent (gymnasium's AsyncVectorEnv
-  builds one env in the parent to read the spaces) the workers hang.
-  :func:`prefer_spawn` sets ``"spawn"`` when nothing is set yet, as ``import torchrl`` does.
+  builds one env in the parent to read the spaces) the workers hang. The library does not set the
+  global method (importing it changes no global state, as ManiSkill's own gym wrappers): its own
+  workers name their context, and :func:`check_start_method` refuses ``fork`` after a renderer.
 
 And one fact of cost: a worker's imports (torch, TorchRL, ManiSkill's tasks) are most of its
 start. :func:`preload_forkserver` has the forkserver import them once; the workers forked from it
@@ -33,7 +34,6 @@ import numpy as np
 
 __all__ = [
     "vulkan_loaded",
-    "prefer_spawn",
     "preload_forkserver",
     "FORK_AFTER_RENDERER",
     "check_start_method",
@@ -65,24 +65,6 @@ def vulkan_loaded() -> bool:
     except OSError:
         return False
     return False
-
-
-def prefer_spawn() -> str | None:
-    """Sets the global start method to ``"spawn"`` if nothing has set one yet; returns the method in force.
-
-    The same as ``import torchrl`` does at import, for code that may start processes before
-    TorchRL is imported (the gym shim's ``AsyncVectorEnv`` users). Without it, the first process
-    started with any context pins ``"fork"`` (see the module docstring). In a child process
-    the method is already set and nothing changes.
-    """
-    current = mp.get_start_method(allow_none=True)
-    if current is None:
-        try:
-            mp.set_start_method("spawn")
-        except RuntimeError:  # set concurrently
-            pass
-        current = mp.get_start_method(allow_none=True)
-    return current
 
 
 def check_start_method(method: str | None) -> None:

@@ -6,7 +6,8 @@ The sequence runs as a user's script would, in a subprocess with a timeout (a ha
 tests instead of the session). Why it used to hang (see ``maniskill_torchrl/_mp.py``): the first
 process started by the AsyncVectorEnv makes Python pin the global start method to "fork";
 ``torchrl``, imported after that, takes it for the user's choice, so ParallelEnv forks the
-parent, which holds a SAPIEN renderer (gymnasium builds one env in the parent), and the workers
+parent (the script imports TorchRL first, as a TorchRL script does; the library itself sets no
+start method), which holds a SAPIEN renderer (gymnasium builds one env in the parent), and the workers
 deadlock in the Vulkan driver. The script checks that condition before starting TorchRL's
 ParallelEnv, and skips that stage with a message instead of waiting for the timeout.
 
@@ -45,6 +46,7 @@ import warnings
 
 warnings.filterwarnings("ignore")
 import gymnasium as gym
+import torchrl  # noqa: F401  (a TorchRL script imports it first: it sets "spawn", which fork-after-gym needs)
 
 import mani_skill.envs  # noqa: F401
 from maniskill_torchrl.wrappers import CPUGymWrapper
@@ -234,8 +236,8 @@ def test_gym_then_parallelenv_then_batched_env(sequence: subprocess.CompletedPro
     report = f"exit {proc.returncode}\n--- stdout ---\n{out[-3000:]}\n--- stderr ---\n{proc.stderr[-3000:]}"
     if which == "torchrl":
         assert "WOULD_HANG" not in out, (
-            "TorchRL's ParallelEnv would fork a parent holding a SAPIEN renderer: importing maniskill_torchrl "
-            f"should have set the 'spawn' start method\n{out[-3000:]}"
+            "TorchRL's ParallelEnv would fork a parent holding a SAPIEN renderer: importing torchrl "
+            f"first should have set the 'spawn' start method\n{out[-3000:]}"
         )
     # ran to its end without a crash (exit 1: a stage failed, checked below)
     assert "SEQUENCE DONE" in out and proc.returncode in (0, 1), report

@@ -171,16 +171,20 @@ def test_vulkan_loaded_after_a_maniskill_env() -> None:
     assert _mp.vulkan_loaded()
 
 
-def test_prefer_spawn_only_when_unset() -> None:
+def test_importing_the_library_changes_no_start_method() -> None:
+    """A drop-in changes one import and nothing else: the gym shim, as ManiSkill's module, and the
+    package leave the global start method unset (``None``) and do not import TorchRL (whose own
+    import sets ``"spawn"`` when nothing is set: TorchRL's choice, checked here too)."""
     code = (
-        "import multiprocessing as mp\n"
-        "from maniskill_torchrl._internal.mp import prefer_spawn\n"
-        "print(prefer_spawn(), end=' ')\n"
-        "mp.set_start_method('forkserver', force=True)\n"
-        "print(prefer_spawn())\n"
+        "import multiprocessing as mp, sys\n"
+        "import maniskill_torchrl.wrappers.gymnasium, maniskill_torchrl.wrappers.action_repeat\n"
+        "import maniskill_torchrl\n"
+        "print(mp.get_start_method(allow_none=True), 'torchrl' in sys.modules, end=' ')\n"
+        "import torchrl\n"
+        "print(mp.get_start_method(allow_none=True))\n"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)
-    assert out.stdout.split() == ["spawn", "forkserver"]
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    assert out.stdout.split() == ["None", "False", "spawn"], out.stdout + out.stderr
 
 
 _PRELOAD_SCRIPT = """
