@@ -1,7 +1,8 @@
 """Behaviour cloning from ManiSkill motion-planning demonstrations, with TorchRL.
 
 The data path is the library's: ManiSkill's own motion planner writes the demonstrations
-(``scripts/make_demos.sh``, run on demand), ManiSkill's ``replay_trajectory`` converts them to
+(:func:`maniskill_torchrl.data.motion_planning.make_demos`, run on demand; it needs a numpy 1 for ManiSkill's
+planner, which ``make setup`` makes and whose absence it names), ManiSkill's ``replay_trajectory`` converts them to
 ``--control-mode`` with state observations, and :class:`~maniskill_torchrl.data.ManiSkillExperienceReplay`
 reads the file as a TorchRL replay buffer laid out as the env's steps. The policy then runs, unchanged,
 on ``ManiSkillEnv`` with TorchRL's ``InitTracker`` + ``CatFrames`` (observation history) and
@@ -46,7 +47,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -62,32 +62,24 @@ from torchrl.modules import MultiStepActorWrapper
 import sim_device
 from maniskill_torchrl.data import ManiSkillExperienceReplay
 
-ROOT = Path(__file__).resolve().parents[1]
 CHECKPOINT_FORMAT = "maniskill_torchrl.bc/1"
 
 
 # --------------------------------------------------------------------------- data
 def demo_file(args: argparse.Namespace) -> Path:
-    """The converted demonstration file; made with ``scripts/make_demos.sh`` when missing."""
+    """The converted demonstration file; made with :func:`~maniskill_torchrl.data.motion_planning.make_demos`
+    under ``--demo-dir`` (as given, resolved once: the same folder whatever the script's location) when missing."""
+    from maniskill_torchrl.data.motion_planning import Numpy1Missing, make_demos
+
     if args.demos is not None:
         path = Path(args.demos)
         if not path.exists():
             raise SystemExit(f"--demos {path}: no such file")
         return path
-    out = Path(args.demo_dir)
-    path = out / args.env_id / "motionplanning" / f"trajectory.state.{args.control_mode}.physx_cpu.h5"
-    cmd = [
-        "bash",
-        str(ROOT / "scripts" / "make_demos.sh"),
-        args.env_id,
-        str(args.num_demos),
-        args.control_mode,
-        str(out),
-    ]
-    print("$", " ".join(cmd), flush=True)
-    if subprocess.run(cmd).returncode != 0:
-        raise SystemExit(f"making the demonstrations failed (its log is under {path.parent}): {' '.join(cmd)}")
-    return path
+    try:
+        return make_demos(args.env_id, args.num_demos, args.control_mode, args.demo_dir)
+    except (Numpy1Missing, RuntimeError) as err:
+        raise SystemExit(f"making the demonstrations failed: {err}") from None
 
 
 class ChunkDataset:

@@ -8,7 +8,8 @@
 #    needs, is built against torch 2.14 and does not load on another torch; on Linux that is
 #    PyPI's CUDA build with its nvidia-* wheels, found in a local pip index where there is one)
 #    and `pip install -e ".[test,demo,distributed,docs,hydra,maniskill]"`
-#    (the `maniskill` extra: the ManiSkill 3.0.x release) in one resolve, then
+#    (the `maniskill` extra: the ManiSkill 3.0.x release) in one resolve (and numpy<2 into
+#    .venv/numpy1, ManiSkill's motion planner's: maniskill_torchrl.data.motion_planning), then
 #    writes the bytecode of what the library, its examples and its tests import (by importing it
 #    once; the make targets let Python write the rest's on first use).
 #    The install itself is uv's `uv pip install` (uv installed into the venv by pip first), with
@@ -154,6 +155,17 @@ print("setup: ManiSkill:", ", ".join(have) or "none")
 sys.exit(len(have) != 1)
 EOF
     echo "$want_hash" >"$STAMP"
+    pip_done=1
+fi
+
+# ------------------------------------------------------ the motion planner's numpy 1
+# ManiSkill's motion planner (mplib 0.1.1, which mani-skill pins) crashes under numpy 2: its process runs
+# with a numpy 1 first on PYTHONPATH, from $VENV/numpy1 (maniskill_torchrl.data.motion_planning finds it at
+# <sys.prefix>/numpy1). Made here, once, so that nothing is installed at run time. Nothing else sees it.
+if [[ ! -f "$VENV/numpy1/numpy/__init__.py" ]]; then
+    log "installing numpy<2 into $VENV/numpy1 (for ManiSkill's motion planner only)"
+    pip_q install --no-warn-conflicts --no-compile --target "$VENV/numpy1" "numpy<2" ||
+        log "warning: numpy<2 could not be installed into $VENV/numpy1: the motion-planning demos need it"
     pip_done=1
 fi
 

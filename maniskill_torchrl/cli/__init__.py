@@ -238,7 +238,20 @@ def _finished_episodes(batch) -> list[dict[str, Any]]:
 
 
 # subcommand -> (flag checks, runner)
-_COMMANDS = {"demo": (validate_demo_args, run_demo)}
+def run_make_demos(args: argparse.Namespace) -> int:
+    """Runs ``maniskill-torchrl make-demos``; returns the exit code."""
+    from maniskill_torchrl.data.motion_planning import Numpy1Missing, make_demos
+
+    try:
+        path = make_demos(args.env_id, args.num_demos, args.control_mode, args.out, processes=args.processes)
+    except (Numpy1Missing, RuntimeError) as err:
+        print(f"maniskill-torchrl make-demos: {err}", file=sys.stderr)
+        return 1
+    print(path)
+    return 0
+
+
+_COMMANDS = {"demo": (validate_demo_args, run_demo), "make-demos": (lambda args: None, run_make_demos)}
 
 
 if __name__ == "__main__":  # pragma: no cover

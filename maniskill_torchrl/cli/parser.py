@@ -83,6 +83,25 @@ def build_parser() -> argparse.ArgumentParser:
     )
     demo.add_argument("--no-progress", action="store_true", help="no progress bar")
     demo.set_defaults(subparser=demo)
+
+    demos = sub.add_parser(
+        "make-demos",
+        help="plan motion-planning demonstrations with ManiSkill's planner and convert them",
+        description=(
+            "Plans NUM_DEMOS successful ENV_ID demonstrations with ManiSkill's motion planner (CPU sim), "
+            "converts them to --control-mode with state observations, and prints the converted .h5 "
+            "(maniskill_torchrl.data.motion_planning). Kept when made already."
+        ),
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    demos.add_argument("env_id", help="ManiSkill task id with a motion-planning solution (e.g. PickCube-v1)")
+    demos.add_argument("num_demos", type=_positive_int, help="successful demonstrations to plan")
+    demos.add_argument("--control-mode", default="pd_ee_delta_pos", help="control mode of the converted file")
+    demos.add_argument("--out", type=Path, default=Path("demos"), help="output folder (<out>/<env_id>/motionplanning)")
+    demos.add_argument(
+        "--processes", type=_positive_int, default=None, help="planner processes (default: the usable CPUs)"
+    )
+    demos.set_defaults(subparser=demos)
     return parser
 
 
