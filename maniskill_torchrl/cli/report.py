@@ -68,8 +68,9 @@ def print_summary(summary: dict[str, Any]) -> None:
 
 def plot_returns(episodes: Sequence[dict[str, Any]], path: Path, title: str) -> None:
     """Per-episode returns in finishing order (successes in green), with a running mean."""
-    import matplotlib
+    from maniskill_torchrl._internal.extras import require
 
+    matplotlib = require("matplotlib", "the demo's plot")
     matplotlib.use("Agg")  # no display needed
     import matplotlib.pyplot as plt
 
@@ -106,8 +107,11 @@ def record_video(env: Any, make_policy: Any, path: Path, *, steps: int, seed: in
 
     CPU rendering is the slow part, so one frame per agent step, not per sim step.
     """
-    import imageio.v2 as imageio
     from torchrl.envs.utils import step_mdp
+
+    from maniskill_torchrl._internal.extras import require
+
+    imageio = require("imageio.v2", "the demo's video")
 
     base = env.base_env
     env.set_seed(seed + 10_000)  # episodes unlike the collected ones

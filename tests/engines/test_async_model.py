@@ -151,7 +151,13 @@ class Seeds:
 
 class World:
     """One pool (rebuilt only if a failure closed it), its ``TransformedEnv``, and one lone env per env index
-    (built on first use, reused by every sequence: each reset is seeded)."""
+    (built on first use, reused by every sequence while the pool is, rebuilt with it).
+
+    A seeded reset of ManiSkill's CPU sim does not undo everything of the episode before: PhysX keeps the
+    contacts of the last step until the next one (PickCube's ``is_grasped`` after a reset is the old
+    episode's). A lone env and the pool's env it models give the same data only from the same history: every
+    step of one is a step of the other (:meth:`PoolMachine.teardown` catches the lone envs up with what a
+    collector kept), and both are built anew together."""
 
     def __init__(self, num_envs: int, repeat: int, episode: int) -> None:
         self.num_envs, self.repeat, self.episode = num_envs, repeat, episode
@@ -166,6 +172,8 @@ class World:
         if self.pool is None or self.pool.is_closed or FRESH:
             if self.pool is not None:
                 self.pool.close(raise_if_closed=False)
+            close_envs([r for r in self.refs if r is not None])
+            self.refs = [None] * self.num_envs
             self.pool = ManiSkillAsyncEnvPool(
                 "PickCube-v1", self.num_envs, repeat=self.repeat, obs_mode="state", max_episode_steps=self.episode
             )
@@ -375,8 +383,8 @@ class PoolMachine(RuleBasedStateMachine):
             assert_tensordict_equal(out[i], expected, msg=f"env {i}'s first reset")
 
     def teardown(self) -> None:
-        """Receives (and checks) everything still under way. After a failure, what is under way is received
-        unchecked; a pool left closed or busy is rebuilt by the next sequence."""
+        """Receives (and checks) everything still under way. After a failure, the pool is closed, and rebuilt
+        by the next sequence."""
         pool = self.pool
         if not pool.is_closed:
             pool._engine.warn_after, pool._engine.fail_after = LIMITS
@@ -386,38 +394,32 @@ class PoolMachine(RuleBasedStateMachine):
         try:
             if self.coll is not None and self.coll.iterator is not None:
                 self._call(self.coll.iterator.close)
-                self.coll.iterator = None
+                self.coll.iterator, self.coll.owns = None, True
             for kind in (STEP, STEP_RESET, RESET):
                 envs = self._pending(kind)
                 if envs:
                     self._receive(kind, dict(min_get=len(envs)), envs)
+            # the pool's envs stepped what the collector kept: the lone envs too (the next sequence's resets
+            # then start from the same history, see World)
+            self._foreign(restart=False)
             assert pool._current_step == pool._current_step_reset == pool._current_reset == 0, "left under way"
         except BaseException:
             self._recover()
             raise
 
     def _recover(self) -> None:
-        pool = self.pool
+        """After a failure: the pool is closed (the next sequence builds a new one, and new lone envs). What
+        was under way is never received unchecked: the pool's envs would have stepped what the lone envs
+        did not (see World)."""
         try:
             if self.coll is not None and self.coll.iterator is not None:
                 self.coll.iterator, iterator = None, self.coll.iterator
                 iterator.close()
         except Exception:  # noqa: BLE001 - the failure is the sequence's, already raised
             pass
-        for count, call in (
-            (lambda: pool._current_step, pool.async_step_recv),
-            (lambda: pool._current_step_reset, pool.async_step_and_maybe_reset_recv),
-            (lambda: pool._current_reset, pool.async_reset_recv),
-        ):
-            try:
-                if not pool.is_closed and count():
-                    with warnings.catch_warnings():
-                        warnings.simplefilter("ignore")
-                        call(min_get=count(), timeout=10.0)
-            except Exception:  # noqa: BLE001
-                pass
-        if not pool.is_closed and (pool._current_step or pool._current_step_reset or pool._current_reset):
-            pool.close(raise_if_closed=False)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            self.pool.close(raise_if_closed=False)
 
     @invariant()
     def nothing_lost_or_duplicated(self) -> None:
