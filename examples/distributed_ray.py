@@ -214,6 +214,9 @@ def main(argv: list[str] | None = None) -> int:
         help="demonstrate a failing remote collector: its env factory raises, or its process exits",
     )
     args = p.parse_args(argv)
+    from maniskill_torchrl._internal.extras import require
+
+    require("ray", "examples/distributed_ray.py")  # the distributed extra, named when missing
     if args.frames_per_batch % args.collectors:
         p.error("--frames-per-batch must be a multiple of --collectors (sync=True splits it evenly)")
 

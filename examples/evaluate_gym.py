@@ -180,7 +180,9 @@ def _add_frames(
 
 
 def _write_video(path: str, frames: list[np.ndarray], fps: int) -> None:
-    import imageio.v2 as imageio  # the demo extra: pip install -e '.[demo]'
+    from maniskill_torchrl._internal.extras import require
+
+    imageio = require("imageio.v2", "--video")  # the demo extra
 
     imageio.mimsave(path, frames, fps=fps, macro_block_size=16)
 

@@ -39,10 +39,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 if importlib.util.find_spec("hydra") is None:  # TorchRL's configs need it too
-    raise ImportError(
-        "maniskill_torchrl.configs needs hydra-core: pip install 'maniskill-torchrl[hydra]' (or hydra-core).",
-        name="hydra",
-    )
+    from maniskill_torchrl._internal.extras import missing_extra
+
+    raise missing_extra("hydra", "maniskill_torchrl.configs (TorchRL's config system and trainers)")
 
 from hydra.core.config_store import ConfigStore  # noqa: E402
 from omegaconf import MISSING  # noqa: E402

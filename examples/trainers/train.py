@@ -12,10 +12,13 @@ Any field is a Hydra override (``trainer.total_frames=100000``, ``logger=tensorb
 write under ``outputs/<date>/<time>/`` (``hydra.job.chdir``).
 """
 
-import hydra
-from torchrl.trainers.algorithms.configs import *  # noqa: F401, F403
+from maniskill_torchrl._internal.extras import require
 
-from maniskill_torchrl.configs import *  # noqa: F401, F403
+hydra = require("hydra", "examples/trainers/train.py")  # the hydra extra, named when missing
+
+from torchrl.trainers.algorithms.configs import *  # noqa: E402, F401, F403
+
+from maniskill_torchrl.configs import *  # noqa: E402, F401, F403
 
 
 @hydra.main(config_path="config", config_name="sac_pushcube", version_base="1.3")
