@@ -197,30 +197,35 @@ class AsyncPoolCollector(BaseCollector):
         example.set(_TRAJ_IDS, torch.zeros(1, dtype=torch.int64))
         example.set("step_count", torch.zeros(1, 1, dtype=torch.int64))
         example.set(("next", "step_count"), torch.zeros(1, 1, dtype=torch.int64))
-        old, kept = self._buffer, self._cursor
-        self._buffer = example.expand(rows).clone()
-        self._arrays = {key: self._buffer.get(key).numpy() for key in self._buffer.keys(True, True)}
-        if old is not None and kept:
-            ours, theirs = set(self._buffer.keys(True, True)), set(old.keys(True, True))
-            self._buffer[:kept] = old[:kept].select(*(ours & theirs))
-            if ours != theirs:
-                warnings.warn(
-                    f"AsyncPoolCollector: the policy's entries changed with {kept} transitions kept from the last "
-                    f"iteration; in those, {sorted(theirs - ours, key=str)} are dropped and "
-                    f"{sorted(ours - theirs, key=str)} are zeros.",
-                    RuntimeWarning,
-                    stacklevel=5,
-                )
+        ours, theirs, kept = self._lay_out(example, rows)
+        if kept and ours != theirs:
+            warnings.warn(
+                f"AsyncPoolCollector: the policy's entries changed with {kept} transitions kept from the last "
+                f"iteration; in those, {sorted(theirs - ours, key=str)} are dropped and "
+                f"{sorted(ours - theirs, key=str)} are zeros.",
+                RuntimeWarning,
+                stacklevel=5,
+            )
 
     def _grow(self, rows: int) -> None:
         """A buffer of at least ``rows`` rows, the kept transitions moved in: iterations left early
         (a ``break`` after one batch) keep more than they yield, and nothing kept is dropped."""
-        old, kept = self._buffer, self._cursor
-        self._buffer = old[:1].expand(max(rows, 2 * len(old))).clone()
-        self._buffer[:kept] = old[:kept]
-        self._arrays = {key: self._buffer.get(key).numpy() for key in self._buffer.keys(True, True)}
+        self._lay_out(self._buffer[:1], max(rows, 2 * len(self._buffer)))
         if isinstance(self.env, ManiSkillAsyncEnvPool):  # its plan wrote into the old buffer
             self.env._plan_into({k: v for k, v in self._arrays.items() if k not in _MARKS})
+
+    def _lay_out(self, example: TensorDictBase, rows: int) -> tuple[set, set, int]:
+        """A new buffer of ``rows`` rows laid out as ``example`` (one row), the kept transitions moved
+        in (their entries the new layout has). Returns the new and old entry keys and how many were kept."""
+        old, kept = self._buffer, self._cursor
+        self._buffer = example.expand(rows).clone()
+        self._arrays = {key: self._buffer.get(key).numpy() for key in self._buffer.keys(True, True)}
+        ours = set(self._buffer.keys(True, True))
+        if old is None or not kept:
+            return ours, ours, 0
+        theirs = set(old.keys(True, True))
+        self._buffer[:kept] = old[:kept].select(*(ours & theirs))
+        return ours, theirs, kept
 
     def _mark(self, rows: np.ndarray, done: np.ndarray, start: int, end: int) -> None:
         """Trajectory ids and step counts of the transitions at ``start:end`` (envs ``rows``), then
