@@ -60,9 +60,14 @@ from torchrl.envs import CatFrames, EnvBase, InitTracker, TransformedEnv
 from torchrl.modules import MultiStepActorWrapper
 
 import sim_device
+import stopping
 from maniskill_torchrl.data import ManiSkillExperienceReplay
 
 CHECKPOINT_FORMAT = "maniskill_torchrl.bc/1"
+
+
+class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """The description as written, every option's default shown."""
 
 
 # --------------------------------------------------------------------------- data
@@ -343,41 +348,53 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     losses: list[float] = []
     record: dict[str, Any] = {}
     t_train = time.perf_counter()
-    for it in range(1, args.iterations + 1):
-        obs, chunk = (x.to(device) for x in data.sample(args.batch_size, gen))
-        loss = policy.loss(obs, chunk, gen)
-        optim.zero_grad(set_to_none=True)
-        loss.backward()
-        optim.step()
-        sched.step()
-        ema.update_parameters(policy)
-        losses.append(loss.item())
-        if it % args.eval_every == 0 or it == args.iterations:
-            t_eval = time.perf_counter()
-            result = evaluate(args, ema.module.eval(), settings)
-            record = {
-                "iteration": it,
-                "loss": sum(losses) / len(losses),
-                "wall_s": time.perf_counter() - t0,
-                "train_s": t_eval - t_train,
-                "eval_s": time.perf_counter() - t_eval,
-                **result,
-            }
-            losses.clear()
-            print(
-                f"it {it:6d}  loss {record['loss']:.4f}  success_once {result['success_once']:.2f}  "
-                f"at_end {result['success_at_end']:.2f}  wall {record['wall_s']:.0f} s  "
-                f"(eval {record['eval_s']:.0f} s)",
-                flush=True,
-            )
-            log.write(json.dumps(record) + "\n")
-            log.flush()
-            t_train += time.perf_counter() - t_eval  # train_s counts gradient steps only
+    stopped: KeyboardInterrupt | None = None
+    t_line = time.perf_counter()
+    it = 0
+    try:
+        for it in range(1, args.iterations + 1):
+            obs, chunk = (x.to(device) for x in data.sample(args.batch_size, gen))
+            loss = policy.loss(obs, chunk, gen)
+            optim.zero_grad(set_to_none=True)
+            loss.backward()
+            optim.step()
+            sched.step()
+            ema.update_parameters(policy)
+            losses.append(loss.item())
+            if it % 100 == 0 and time.perf_counter() - t_line >= args.progress_every >= 0:
+                t_line = time.perf_counter()
+                print(f"it {it:6d}/{args.iterations}  loss {sum(losses) / len(losses):.4f}", flush=True)
+            if it % args.eval_every == 0 or it == args.iterations:
+                t_eval = time.perf_counter()
+                result = evaluate(args, ema.module.eval(), settings)
+                record = {
+                    "iteration": it,
+                    "loss": sum(losses) / len(losses),
+                    "wall_s": time.perf_counter() - t0,
+                    "train_s": t_eval - t_train,
+                    "eval_s": time.perf_counter() - t_eval,
+                    **result,
+                }
+                losses.clear()
+                print(
+                    f"it {it:6d}  loss {record['loss']:.4f}  success_once {result['success_once']:.2f}  "
+                    f"at_end {result['success_at_end']:.2f}  wall {record['wall_s']:.0f} s  "
+                    f"(eval {record['eval_s']:.0f} s)",
+                    flush=True,
+                )
+                log.write(json.dumps(record) + "\n")
+                log.flush()
+                t_train += time.perf_counter() - t_eval  # train_s counts gradient steps only
+    except KeyboardInterrupt as err:  # Ctrl-C, or SIGTERM (stopping.interruptible): keep the run so far
+        stopped = err
+        print(f"{stopping.said(err)} at iteration {it}: saving the policy so far", flush=True)
     log.close()
-    torch.save(
-        {"format": CHECKPOINT_FORMAT, "settings": settings, "policy": ema.module.state_dict(), "evaluation": record},
-        out / "bc_checkpoint.pt",
-    )
+    with stopping.uninterrupted():
+        state = {"format": CHECKPOINT_FORMAT, "settings": settings, "policy": ema.module.state_dict()}
+        torch.save({**state, "evaluation": record}, out / "bc_checkpoint.pt")
+    print(f"saved {out / 'bc_checkpoint.pt'}; metrics log: {out / 'metrics.jsonl'}", flush=True)
+    if stopped is not None:
+        record = {**record, "stopped": stopping.said(stopped), "exit_status": stopping.exit_status(stopped)}
     return record
 
 
@@ -393,30 +410,31 @@ def load_policy(path: str | Path) -> tuple[MultiStepActorWrapper, dict[str, Any]
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
-    p.add_argument("--env-id", default="PickCube-v1")
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=HelpFormatter)
+    p.add_argument("--env-id", default="PickCube-v1", help="ManiSkill task (one with a motion-planning solution)")
     p.add_argument("--demos", default=None, help="a converted ManiSkill .h5 (default: made under --demo-dir)")
-    p.add_argument("--demo-dir", default="demos")
-    p.add_argument("--num-demos", type=int, default=1000)
-    p.add_argument("--control-mode", default="pd_ee_delta_pos")
-    p.add_argument("--policy", choices=["mlp", "diffusion"], default="mlp")
-    p.add_argument("--obs-horizon", type=int, default=2)
-    p.add_argument("--pred-horizon", type=int, default=16)
-    p.add_argument("--act-horizon", type=int, default=8)
-    p.add_argument("--hidden", type=int, default=512)
-    p.add_argument("--depth", type=int, default=3)
-    p.add_argument("--iterations", type=int, default=5000)
-    p.add_argument("--batch-size", type=int, default=256)
-    p.add_argument("--lr", type=float, default=1e-3)
-    p.add_argument("--ema", type=float, default=0.999)
-    p.add_argument("--eval-every", type=int, default=2500)
-    p.add_argument("--eval-episodes", type=int, default=100)
+    p.add_argument("--demo-dir", default="demos", help="folder of the made demos: <demo-dir>/<env-id>/motionplanning")
+    p.add_argument("--num-demos", type=int, default=1000, help="successful demonstrations to plan and train on")
+    p.add_argument("--control-mode", default="pd_ee_delta_pos", help="control mode of the demos and the policy")
+    p.add_argument("--policy", choices=["mlp", "diffusion"], default="mlp", help="chunk regression or DDPM")
+    p.add_argument("--obs-horizon", type=int, default=2, help="observations the policy reads (history)")
+    p.add_argument("--pred-horizon", type=int, default=16, help="actions predicted per chunk")
+    p.add_argument("--act-horizon", type=int, default=8, help="actions of a chunk executed before re-planning")
+    p.add_argument("--hidden", type=int, default=512, help="MLP width")
+    p.add_argument("--depth", type=int, default=3, help="MLP hidden layers")
+    p.add_argument("--iterations", type=int, default=5000, help="gradient steps")
+    p.add_argument("--batch-size", type=int, default=256, help="samples per gradient step")
+    p.add_argument("--lr", type=float, default=1e-3, help="AdamW learning rate (cosine-annealed)")
+    p.add_argument("--ema", type=float, default=0.999, help="decay of the weights' moving average (evaluated)")
+    p.add_argument("--eval-every", type=int, default=2500, help="iterations between evaluations")
+    p.add_argument("--eval-episodes", type=int, default=100, help="seeded episodes per evaluation")
     p.add_argument("--eval-envs", type=int, default=2, help="batched envs for evaluation")
-    p.add_argument("--eval-seed", type=int, default=10_000)
-    p.add_argument("--max-episode-steps", type=int, default=100)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=2)
-    p.add_argument("--out", default="outputs/bc")
+    p.add_argument("--eval-seed", type=int, default=10_000, help="evaluation episodes use seeds from here")
+    p.add_argument("--max-episode-steps", type=int, default=100, help="evaluation episode length")
+    p.add_argument("--seed", type=int, default=0, help="seed of the model, the sampling and the demos' order")
+    p.add_argument("--threads", type=int, default=2, help="torch threads of this process")
+    p.add_argument("--out", default="outputs/bc", help="output folder: metrics.jsonl, bc_checkpoint.pt")
+    p.add_argument("--progress-every", type=float, default=15.0, help="seconds between loss lines; -1: none")
     p.add_argument("--smoke", action="store_true", help="20 demos, 300 iterations, 4 evaluation episodes")
     sim_device.add_arguments(p, cpu_default=True)
     args = p.parse_args(argv)
@@ -430,9 +448,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    record = train(args)
+    with stopping.interruptible():  # SIGTERM as Ctrl-C: the policy so far is saved, then exit 143 (130)
+        record = train(args)
     print(json.dumps(record))
-    return 0
+    return record.get("exit_status", 0)
 
 
 if __name__ == "__main__":  # the evaluation env's workers re-import this file

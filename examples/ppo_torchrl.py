@@ -67,6 +67,7 @@ from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
 import sim_device
+import stopping
 from evaluation import (  # noqa: F401 (names kept here)
     episode_stats,
     evaluate_and_log,
@@ -288,39 +289,45 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     best: dict[str, Any] | None = None  # the best evaluation so far, saved as BEST
     t0 = time.perf_counter()
     eval_s = 0.0  # wall time spent evaluating, not counted as training time
-    for it, batch in enumerate(collector, 1):
-        if args.anneal_lr:  # linear decay to 0 over --total-frames, as CleanRL's / ManiSkill's anneal_lr
-            for group in optim.param_groups:
-                group["lr"] = args.lr * (1.0 - frames / total_frames)
-        frames += batch.numel()
-        record = {"iteration": it, "frames": frames, **episode_stats(batch)}
-        updates, losses = ppo_update(args, batch, advantage, buffer, loss_module, optim, updates_per_epoch)
-        collector.update_policy_weights_()
-        record.update(
-            loss_objective=losses["loss_objective"].item(),
-            loss_critic=losses["loss_critic"].item(),
-            kl_approx=losses["kl_approx"].item(),
-            updates=updates,
-            frames_per_s=round(frames / (time.perf_counter() - t0 - eval_s), 1),
-            train_s=round(time.perf_counter() - t0 - eval_s, 1),
-            wall_s=round(time.perf_counter() - start, 1),
-        )
-        with log_path.open("a") as f:
-            f.write(json.dumps(record) + "\n")
-        print(_format(record), flush=True)
-        out_of_time = args.max_minutes is not None and time.perf_counter() - start >= 60 * args.max_minutes
-        if eval_env is not None and (
-            frames // args.eval_every > (frames - batch.numel()) // args.eval_every or it == iterations or out_of_time
-        ):
-            t = time.perf_counter()
-            res = log_eval(frames, record["train_s"], "policy", policy)
-            if "success_once" in res and (best is None or res["success_once"] > best["success_once"]):
-                best = {"frames": frames, **res}
-                save_checkpoint(out / BEST, args, env, policy, value, frames, evaluation=best)
-            eval_s += time.perf_counter() - t
-        if out_of_time:
-            print(f"--max-minutes {args.max_minutes} reached after {frames} frames: stopping", flush=True)
-            break
+    stopped: KeyboardInterrupt | None = None
+    try:
+        for it, batch in enumerate(collector, 1):
+            if args.anneal_lr:  # linear decay to 0 over --total-frames, as CleanRL's / ManiSkill's anneal_lr
+                for group in optim.param_groups:
+                    group["lr"] = args.lr * (1.0 - frames / total_frames)
+            frames += batch.numel()
+            record = {"iteration": it, "frames": frames, **episode_stats(batch)}
+            updates, losses = ppo_update(args, batch, advantage, buffer, loss_module, optim, updates_per_epoch)
+            collector.update_policy_weights_()
+            record.update(
+                loss_objective=losses["loss_objective"].item(),
+                loss_critic=losses["loss_critic"].item(),
+                kl_approx=losses["kl_approx"].item(),
+                updates=updates,
+                frames_per_s=round(frames / (time.perf_counter() - t0 - eval_s), 1),
+                train_s=round(time.perf_counter() - t0 - eval_s, 1),
+                wall_s=round(time.perf_counter() - start, 1),
+            )
+            with log_path.open("a") as f:
+                f.write(json.dumps(record) + "\n")
+            print(_format(record), flush=True)
+            out_of_time = args.max_minutes is not None and time.perf_counter() - start >= 60 * args.max_minutes
+            every = args.eval_every
+            crossed = eval_env is not None and frames // every > (frames - batch.numel()) // every
+            if eval_env is not None and (crossed or it == iterations or out_of_time):
+                t = time.perf_counter()
+                res = log_eval(frames, record["train_s"], "policy", policy)
+                if "success_once" in res and (best is None or res["success_once"] > best["success_once"]):
+                    best = {"frames": frames, **res}
+                    with stopping.uninterrupted():
+                        save_checkpoint(out / BEST, args, env, policy, value, frames, evaluation=best)
+                eval_s += time.perf_counter() - t
+            if out_of_time:
+                print(f"--max-minutes {args.max_minutes} reached after {frames} frames: stopping", flush=True)
+                break
+    except KeyboardInterrupt as err:  # Ctrl-C, or SIGTERM (stopping.interruptible): keep the run so far
+        stopped = err
+        print(f"{stopping.said(err)} after {frames} frames: saving the run so far", flush=True)
     collector.shutdown()
     if not env.is_closed:
         env.close()
@@ -328,11 +335,15 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
         eval_env.close()
 
     ckpt = out / "ppo_checkpoint.pt"
-    save_checkpoint(ckpt, args, env, policy, value, frames)
+    with stopping.uninterrupted():
+        save_checkpoint(ckpt, args, env, policy, value, frames)
     print(f"saved checkpoint: {ckpt}")
     if best is not None:
         print(f"best evaluation (success_once {best['success_once']:.2f} at {best['frames']} frames): {out / BEST}")
     print(f"metrics log: {log_path}")
+    if stopped is not None:
+        record["stopped"] = stopping.said(stopped)
+        record["exit_status"] = stopping.exit_status(stopped)
     return record
 
 
@@ -496,8 +507,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    train(args)
-    return 0
+    with stopping.interruptible():  # SIGTERM as Ctrl-C: the run so far is saved, then exit 143 (130)
+        record = train(args)
+    return record.get("exit_status", 0)
 
 
 if __name__ == "__main__":  # ParallelEnv spawns workers: keep the entry point guarded

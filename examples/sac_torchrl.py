@@ -52,6 +52,7 @@ from torchrl.modules import ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import SACLoss, SoftUpdate, ValueEstimators
 
 import sim_device
+import stopping
 from evaluation import episode_stats, evaluate_and_log, make_eval_env, time_limit
 from maniskill_torchrl.pipeline import make_env as make_pipeline
 
@@ -236,44 +237,59 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
     next_eval = args.eval_every
     t_batch = time.perf_counter()
     record: dict[str, Any] = {}
-    for batch in collector:
-        timing["sim_s"] += time.perf_counter() - t_batch
-        frames += batch.numel()
-        buffer.extend(batch.reshape(-1))
-        t = time.perf_counter()
-        losses = None
-        if frames >= args.learning_starts:
-            for _ in range(max(1, round(args.utd * batch.numel()))):
-                losses = sac_update(loss, optim, buffer.sample().to(device))
-                target.step()
-                updates += 1
-            collector.update_policy_weights_()
-        timing["update_s"] += time.perf_counter() - t
-        out_of_time = args.max_minutes is not None and time.perf_counter() - start >= 60 * args.max_minutes
-        last = frames >= args.total_frames or out_of_time
-        if frames >= next_eval or last:
-            next_eval += args.eval_every
-            stats = episode_stats(batch)
-            record = {"frames": frames, "updates": updates, **{f"train_{k}": v for k, v in stats.items()}}
-            if losses is not None:
-                record.update({k: losses[k].item() for k in ("loss_qvalue", "loss_actor", "alpha")})
-            record.update(log_eval(frames, "policy", actor, {k: round(v, 1) for k, v in timing.items()}))
-            if best is None or record.get("success_once", 0) > best.get("success_once", 0):
-                best = record
-                save_checkpoint(out / BEST, args, env, actor, loss, frames, evaluation=best)
-        if last:
-            break
-        t_batch = time.perf_counter()
+    progress = stopping.Progress(args.progress_every, total=args.total_frames)
+    last_return = None
+    stopped: KeyboardInterrupt | None = None
+    try:
+        for batch in collector:
+            timing["sim_s"] += time.perf_counter() - t_batch
+            frames += batch.numel()
+            buffer.extend(batch.reshape(-1))
+            t = time.perf_counter()
+            losses = None
+            if frames >= args.learning_starts:
+                for _ in range(max(1, round(args.utd * batch.numel()))):
+                    losses = sac_update(loss, optim, buffer.sample().to(device))
+                    target.step()
+                    updates += 1
+                collector.update_policy_weights_()
+            timing["update_s"] += time.perf_counter() - t
+            ended = batch["next", "done"].squeeze(-1)
+            if ended.any():
+                last_return = batch["next", "episode", "return"][ended].float().mean().item()
+            progress.update(frames, last_return, updates=updates)
+            out_of_time = args.max_minutes is not None and time.perf_counter() - start >= 60 * args.max_minutes
+            last = frames >= args.total_frames or out_of_time
+            if frames >= next_eval or last:
+                next_eval += args.eval_every
+                stats = episode_stats(batch)
+                record = {"frames": frames, "updates": updates, **{f"train_{k}": v for k, v in stats.items()}}
+                if losses is not None:
+                    record.update({k: losses[k].item() for k in ("loss_qvalue", "loss_actor", "alpha")})
+                record.update(log_eval(frames, "policy", actor, {k: round(v, 1) for k, v in timing.items()}))
+                if best is None or record.get("success_once", 0) > best.get("success_once", 0):
+                    best = record
+                    with stopping.uninterrupted():
+                        save_checkpoint(out / BEST, args, env, actor, loss, frames, evaluation=best)
+            if last:
+                break
+            t_batch = time.perf_counter()
+    except KeyboardInterrupt as err:  # Ctrl-C, or SIGTERM (stopping.interruptible): keep the run so far
+        stopped = err
+        print(f"{stopping.said(err)} after {frames} frames: saving the run so far", flush=True)
     collector.shutdown()
     if not env.is_closed:
         env.close()
     eval_env.close()
-    save_checkpoint(out / "sac_checkpoint.pt", args, env, actor, loss, frames, evaluation=record)
-    print(
-        f"saved {out / 'sac_checkpoint.pt'}; best success_once {best.get('success_once', 0):.2f} "
-        f"at {best['frames']} frames: {out / BEST}",
-        flush=True,
-    )
+    with stopping.uninterrupted():
+        save_checkpoint(out / "sac_checkpoint.pt", args, env, actor, loss, frames, evaluation=record)
+    best_line = ""
+    if best is not None:
+        best_line = f"; best success_once {best.get('success_once', 0):.2f} at {best['frames']} frames: {out / BEST}"
+    print(f"saved {out / 'sac_checkpoint.pt'}{best_line}; metrics log: {log_path}", flush=True)
+    if stopped is not None:
+        record["stopped"] = stopping.said(stopped)
+        record["exit_status"] = stopping.exit_status(stopped)
     return record
 
 
@@ -305,6 +321,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     p.add_argument("--eval-seed", type=int, default=10_000)
     p.add_argument("--max-minutes", type=float, default=None, help="stop after this much wall time, then evaluate")
+    p.add_argument(
+        "--progress-every",
+        type=float,
+        default=15.0,
+        help="seconds between progress lines (frames, frames/s, last return) between evaluations; -1: none",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="outputs/sac")
     args = p.parse_args(argv)
@@ -326,8 +348,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
-    train(parse_args(argv))
-    return 0
+    args = parse_args(argv)
+    with stopping.interruptible():  # SIGTERM as Ctrl-C: the run so far is saved, then exit 143 (130)
+        record = train(args)
+    return record.get("exit_status", 0)
 
 
 if __name__ == "__main__":  # the CPU env's workers start with spawn/forkserver: keep the entry point guarded
