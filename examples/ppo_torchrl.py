@@ -502,6 +502,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
             f"--minibatch-size ({args.minibatch_size}) exceeds the frames per iteration "
             f"(--num-envs x --num-steps = {args.num_envs * args.num_steps})"
         )
+    sim_device.cpu_fallback_note(args, f"{args.num_envs} envs, {args.total_frames:,} frames")
     return args
 
 

@@ -344,6 +344,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
             p.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
     if args.utd <= 0:
         p.error(f"--utd must be > 0, got {args.utd}")
+    sim_device.cpu_fallback_note(args, f"{args.num_envs} envs, {args.total_frames:,} frames")
     return args
 
 

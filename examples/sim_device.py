@@ -83,6 +83,9 @@ def check_arguments(
     (exit 2), a pair that cannot run. An explicit ``--sim-backend cpu`` on a machine with CUDA keeps
     the default learner on the GPU; under ``smoke`` (and with ``cpu_default``) the default device is
     the CPU."""
+    # The default run is a GPU run: on a machine without CUDA it becomes a CPU-sim run, said by cpu_fallback_note.
+    args.cpu_fallback = args.device is None and args.sim_backend == "auto" and not (cpu_default or smoke)
+    args.cpu_fallback = args.cpu_fallback and not torch.cuda.is_available()
     if args.device is None:
         args.device = "cuda" if torch.cuda.is_available() and not (cpu_default or smoke) else "cpu"
     try:
@@ -101,3 +104,13 @@ def check_arguments(
 def env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     """``ManiSkillEnv`` keyword arguments of the resolved pair: ``sim_backend`` and ``device``."""
     return {"sim_backend": args.sim_backend, "device": torch.device(args.device)}
+
+
+def cpu_fallback_note(args: argparse.Namespace, what: str) -> None:
+    """Says, once the run's sizes are known, that the default GPU run became a CPU-sim run (no CUDA here)."""
+    if getattr(args, "cpu_fallback", False):
+        print(
+            f"No CUDA device here: the default GPU run becomes {what} on the CPU sim (long on a few cores). "
+            "--smoke checks the whole loop in about a minute; --device cpu chooses this run without this note.",
+            flush=True,
+        )
