@@ -8,23 +8,61 @@ Usage (``docs/guides/trainers.md``)::
     python examples/trainers/train.py --config-name ppo_pullcube
     python examples/trainers/train.py --config-name rlpd_pickcube demos=demos/PickCube-v1/motionplanning
 
-Any field is a Hydra override (``trainer.total_frames=100000``, ``logger=tensorboard``...); runs
-write under ``outputs/<date>/<time>/`` (``hydra.job.chdir``).
+Any field is a Hydra override (``trainer.total_frames=100000``, ``logger=tensorboard``...); a run writes under
+``outputs/<date>/<time>/`` (``hydra.job.chdir``), which it prints first: the logger's files, and at the end
+(Ctrl-C and SIGTERM included, exit 130 / 143) ``policy.pt``, the trained actor's state dict with the task.
 """
+
+import sys
+from pathlib import Path
 
 from maniskill_torchrl._internal.extras import require
 
 hydra = require("hydra", "examples/trainers/train.py")  # the hydra extra, named when missing
 
+import torch  # noqa: E402
 from torchrl.trainers.algorithms.configs import *  # noqa: E402, F401, F403
 
 from maniskill_torchrl.configs import *  # noqa: E402, F401, F403
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the examples' shared modules, wherever run from
+import stopping  # noqa: E402
+
+POLICY_FORMAT = "maniskill_torchrl.trainer.v1"
+
 
 @hydra.main(config_path="config", config_name="sac_pushcube", version_base="1.3")
 def main(cfg):
+    from hydra.core.hydra_config import HydraConfig
+
+    out = Path(HydraConfig.get().runtime.output_dir)
+    print(f"output folder: {out}", flush=True)
     trainer = hydra.utils.instantiate(cfg.trainer)
-    trainer.train()
+    stopped = None
+    with stopping.interruptible():  # SIGTERM as Ctrl-C: the policy so far is saved, then exit 143 (130)
+        try:
+            trainer.train()
+        except KeyboardInterrupt as err:
+            stopped = err
+            print(f"{stopping.said(err)}: saving the policy so far", flush=True)
+    base = cfg.training_env.base_env
+    actor = trainer.loss_module.actor_network
+    with stopping.uninterrupted():
+        torch.save(
+            {
+                "format": POLICY_FORMAT,
+                "config_name": HydraConfig.get().job.config_name,
+                "env_id": base.env_name,
+                "obs_mode": base.obs_mode,
+                "control_mode": base.control_mode,
+                "frames": int(getattr(trainer, "collected_frames", 0)),
+                "policy": actor.state_dict(),
+            },
+            out / "policy.pt",
+        )
+    print(f"saved {out / 'policy.pt'}; logs under {out}", flush=True)
+    if stopped is not None:
+        sys.exit(stopping.exit_status(stopped))
 
 
 if __name__ == "__main__":  # the CPU sim's worker processes start by spawn/forkserver

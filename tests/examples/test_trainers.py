@@ -297,6 +297,9 @@ def test_sac_pushcube_trains(tmp_path, monkeypatch):
     assert scalars["optim_steps"][-1] == (256, (256 - 96) // 32 * 16 + 16)
     _check_logs(scalars, total=256, interval=128, episode_len=20, envs=4)
     assert "r_training" in scalars and "loss_qvalue" in scalars  # TorchRL's own logs still there
+    saved = torch.load(tmp_path / "run" / "policy.pt", map_location="cpu", weights_only=True)  # train.py's checkpoint
+    assert saved["format"] == "maniskill_torchrl.trainer.v1" and saved["env_id"] == "PushCube-v1"
+    assert saved["frames"] == 256 and saved["policy"]
 
 
 def test_ppo_pullcube_trains(tmp_path, monkeypatch):
