@@ -8,8 +8,8 @@ carries ``info["episode"]`` (``success_once``, ``success_at_end``, ``return``,
 ``episode_len``...). The script prints those for each finished episode and
 their averages.
 
-``--checkpoint PATH`` evaluates what ``examples/ppo_torchrl.py`` saved
-(``ppo_checkpoint.pt``, loaded and checked by ``ppo_checkpoint.load_checkpoint``):
+``--checkpoint PATH`` evaluates what ``examples/ppo_torchrl.py`` or ``examples/sac_torchrl.py`` saved
+(``ppo_checkpoint.pt`` / ``sac_checkpoint.pt``, loaded and checked by ``ppo_checkpoint.load_checkpoint``):
 its task and control mode by default, its actor acting deterministically (the
 TanhNormal's ``tanh(loc)`` scaled to the action bounds), episode ``k`` seeded
 ``--seed + k``. ``--video PATH`` writes the first ``--video-episodes`` episodes
@@ -257,7 +257,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--checkpoint",
         default=None,
         metavar="PATH",
-        help="evaluate the ppo_checkpoint.pt of examples/ppo_torchrl.py (file or its --out folder)",
+        help="evaluate the ppo_checkpoint.pt of examples/ppo_torchrl.py or the sac_checkpoint.pt of "
+        "examples/sac_torchrl.py (the file, or its --out folder)",
     )
     p.add_argument("--control-mode", default=None, help="default: the checkpoint's, else the task's")
     p.add_argument(
