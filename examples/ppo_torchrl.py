@@ -123,7 +123,9 @@ def make_env(args: argparse.Namespace) -> EnvBase:
         else:
             env = ParallelEnv(args.num_envs, make, mp_start_method="spawn", device=args.device)
     if args.bootstrap_at_done == "always":
-        env = TransformedEnv(env, IgnoreTerminations(as_truncations=True))
+        # auto_unwrap: appended to the pipeline's TransformedEnv, as TorchRL's default does (said, so that TorchRL
+        # does not warn about nested TransformedEnvs on every run)
+        env = TransformedEnv(env, IgnoreTerminations(as_truncations=True), auto_unwrap=True)
     return env
 
 
@@ -508,6 +510,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    from maniskill_torchrl._internal.rendering import quiet_maniskill
+
+    quiet_maniskill()  # ManiSkill's notes that say nothing actionable here (no CUDA to render with, task builders')
     with stopping.interruptible():  # SIGTERM as Ctrl-C: the run so far is saved, then exit 143 (130)
         record = train(args)
     return record.get("exit_status", 0)

@@ -350,6 +350,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    from maniskill_torchrl._internal.rendering import quiet_maniskill
+
+    quiet_maniskill()  # ManiSkill's notes that say nothing actionable here (no CUDA to render with, task builders')
     with stopping.interruptible():  # SIGTERM as Ctrl-C: the run so far is saved, then exit 143 (130)
         record = train(args)
     return record.get("exit_status", 0)
