@@ -182,17 +182,19 @@ def summarize(batch) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--env-id", default=ENV_ID)
-    p.add_argument("--collectors", type=int, default=2, help="remote collectors (Ray actors), default 2")
+    p = argparse.ArgumentParser(
+        description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
+    p.add_argument("--env-id", default=ENV_ID, help="ManiSkill task")
+    p.add_argument("--collectors", type=int, default=2, help="remote collectors (Ray actors)")
     p.add_argument(
         "--num-envs",
         type=int,
         default=1,
         help="envs per remote collector: 1 = ManiSkillEnv(batch_size=[]); N = ManiSkillEnv(num_envs=N)",
     )
-    p.add_argument("--frames-per-batch", type=int, default=200, help="over all collectors (default 200)")
-    p.add_argument("--batches", type=int, default=4)
+    p.add_argument("--frames-per-batch", type=int, default=200, help="over all collectors")
+    p.add_argument("--batches", type=int, default=4, help="batches to collect")
     p.add_argument(
         "--max-episode-steps",
         type=int,
@@ -204,8 +206,8 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="Ray cluster to join ('auto' after `ray start`); default: a local ray.init(num_cpus=...)",
     )
-    p.add_argument("--num-cpus", type=int, default=2, help="CPUs of the local Ray instance (default 2)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--num-cpus", type=int, default=2, help="CPUs of the local Ray instance")
+    p.add_argument("--seed", type=int, default=0, help="seed of the policy and the envs")
     p.add_argument("--worker-logs", action="store_true", help="forward the actors' stdout/stderr here")
     p.add_argument(
         "--crash",

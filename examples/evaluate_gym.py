@@ -251,7 +251,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     p.add_argument("--num-envs", type=int, default=2, help="AsyncVectorEnv sub-envs (processes)")
     p.add_argument("--episodes", type=int, default=4, help="episodes to evaluate in all")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="episode k is seeded --seed + k")
     p.add_argument("--policy", choices=("random", "zero"), default="random", help="without --checkpoint")
     p.add_argument(
         "--checkpoint",
@@ -271,7 +271,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--video", default=None, metavar="PATH", help="write an mp4 of the first episodes (gym backend)")
     p.add_argument("--video-episodes", type=int, default=2, help="episodes in the --video")
     p.add_argument("--max-episode-steps", type=int, default=None, help="default: the task's time limit")
-    p.add_argument("--obs-mode", default="state")
+    p.add_argument("--obs-mode", default="state", help="ManiSkill observation mode (checkpoints: state)")
     args = p.parse_args(argv)
     for name in ("num_envs", "episodes"):
         if getattr(args, name) < 1:

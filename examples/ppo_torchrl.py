@@ -400,7 +400,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(
         description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
     )
-    p.add_argument("--env-id", default="PushCube-v1")
+    p.add_argument("--env-id", default="PushCube-v1", help="ManiSkill task")
     p.add_argument("--smoke", action="store_true", help="tiny CPU-sim run: 2 batched CPU envs, a few hundred frames")
     sim_device.add_arguments(p)
     p.add_argument("--num-envs", type=int, default=None, help="default: 512 on the GPU sim, 2 on the CPU sim")
@@ -413,17 +413,34 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "CPU envs",
     )
     p.add_argument("--num-steps", type=int, default=None, help="rollout steps per env per iteration")
-    p.add_argument("--total-frames", type=int, default=None)
+    p.add_argument(
+        "--total-frames",
+        type=int,
+        default=None,
+        help="frames to collect; default 300 with --smoke, 2,000,000 on the GPU sim, 300,000 on the CPU sim",
+    )
     p.add_argument("--repeat", type=int, default=1, help="ActionRepeat")
-    p.add_argument("--control-mode", default="pd_joint_delta_pos")
-    p.add_argument("--max-episode-steps", type=int, default=None)
-    p.add_argument("--epochs", type=int, default=None)
-    p.add_argument("--minibatch-size", type=int, default=None)
-    p.add_argument("--hidden", type=int, default=256)
-    p.add_argument("--lr", type=float, default=3e-4)
+    p.add_argument("--control-mode", default="pd_joint_delta_pos", help="ManiSkill's controller of the agent")
+    p.add_argument(
+        "--max-episode-steps", type=int, default=None, help="episode length (default: the task's time limit)"
+    )
+    p.add_argument(
+        "--epochs",
+        type=int,
+        default=None,
+        help="PPO epochs per batch; default 2 with --smoke, 4 on the GPU sim, 8 on the CPU sim",
+    )
+    p.add_argument(
+        "--minibatch-size",
+        type=int,
+        default=None,
+        help="frames per minibatch; default 50 with --smoke, 800 on the GPU sim, 50 on the CPU sim",
+    )
+    p.add_argument("--hidden", type=int, default=256, help="width of the 3-layer Tanh MLPs of actor and critic")
+    p.add_argument("--lr", type=float, default=3e-4, help="Adam's learning rate")
     p.add_argument("--anneal-lr", action="store_true", help="decay the learning rate linearly to 0 over --total-frames")
-    p.add_argument("--gamma", type=float, default=0.8)
-    p.add_argument("--lmbda", type=float, default=0.9)
+    p.add_argument("--gamma", type=float, default=0.8, help="discount")
+    p.add_argument("--lmbda", type=float, default=0.9, help="GAE's lambda")
     p.add_argument(
         "--bootstrap-at-done",
         choices=("always", "never"),
@@ -431,8 +448,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         help="always: bootstrap from the final observation's value at every done, success terminations "
         "included (ManiSkill's PPO baseline); never: a termination ends the return (TorchRL's GAE default)",
     )
-    p.add_argument("--clip-epsilon", type=float, default=0.2)
-    p.add_argument("--entropy-coeff", type=float, default=0.0)
+    p.add_argument("--clip-epsilon", type=float, default=0.2, help="ClipPPOLoss's clip range")
+    p.add_argument("--entropy-coeff", type=float, default=0.0, help="entropy bonus weight (0: none)")
     p.add_argument(
         "--target-kl",
         type=float,
@@ -440,8 +457,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         help="stop an iteration's updates once the approximate KL to the collecting policy exceeds this "
         "(ManiSkill's baseline: 0.1); default: no stop",
     )
-    p.add_argument("--critic-coeff", type=float, default=0.5)
-    p.add_argument("--max-grad-norm", type=float, default=0.5)
+    p.add_argument("--critic-coeff", type=float, default=0.5, help="value loss weight")
+    p.add_argument("--max-grad-norm", type=float, default=0.5, help="gradient clipping norm")
     p.add_argument("--threads", type=int, default=1, help="torch threads of this process on the CPU sim or learner")
     p.add_argument(
         "--eval-every",
@@ -463,8 +480,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         default=None,
         help="stop after this much wall time (training and evaluation), with a last evaluation",
     )
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", default="outputs/ppo")
+    p.add_argument("--seed", type=int, default=0, help="seed of envs, policy and sampling")
+    p.add_argument(
+        "--out", default="outputs/ppo", help="output folder: ppo_checkpoint.pt, ppo_checkpoint_best.pt, metrics.jsonl"
+    )
     args = p.parse_args(argv)
 
     sim_device.check_arguments(p, args, smoke=args.smoke)

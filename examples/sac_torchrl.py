@@ -297,29 +297,31 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(
         description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
     )
-    p.add_argument("--env-id", default="PushCube-v1")
+    p.add_argument("--env-id", default="PushCube-v1", help="ManiSkill task")
     p.add_argument("--smoke", action="store_true", help="a few hundred frames on 2 CPU-sim envs, end to end")
     sim_device.add_arguments(p)
     p.add_argument("--num-envs", type=int, default=None, help="default: 32 on the GPU sim, 4 on the CPU sim")
     p.add_argument("--steps-per-batch", type=int, default=8, help="steps per env per collected batch")
-    p.add_argument("--total-frames", type=int, default=200_000)
+    p.add_argument("--total-frames", type=int, default=200_000, help="frames to collect")
     p.add_argument("--learning-starts", type=int, default=4_000, help="random-action frames before the updates")
-    p.add_argument("--buffer-size", type=int, default=1_000_000)
-    p.add_argument("--batch-size", type=int, default=512)
+    p.add_argument("--buffer-size", type=int, default=1_000_000, help="replay buffer capacity in frames")
+    p.add_argument("--batch-size", type=int, default=512, help="samples per gradient step")
     p.add_argument("--utd", type=float, default=0.5, help="gradient steps per collected frame")
-    p.add_argument("--control-mode", default="pd_joint_delta_pos")
-    p.add_argument("--max-episode-steps", type=int, default=None)
-    p.add_argument("--hidden", type=int, default=256)
-    p.add_argument("--lr", type=float, default=3e-4)
-    p.add_argument("--gamma", type=float, default=0.8)
-    p.add_argument("--tau", type=float, default=0.005)
+    p.add_argument("--control-mode", default="pd_joint_delta_pos", help="ManiSkill's controller of the agent")
+    p.add_argument(
+        "--max-episode-steps", type=int, default=None, help="episode length (default: the task's time limit)"
+    )
+    p.add_argument("--hidden", type=int, default=256, help="width of the MLPs of actor and Q-nets")
+    p.add_argument("--lr", type=float, default=3e-4, help="Adam's learning rate")
+    p.add_argument("--gamma", type=float, default=0.8, help="discount")
+    p.add_argument("--tau", type=float, default=0.005, help="the target Q-nets' soft-update rate")
     p.add_argument("--threads", type=int, default=1, help="torch threads of this process on the CPU sim or learner")
     p.add_argument("--eval-every", type=int, default=20_000, help="frames between evaluations")
-    p.add_argument("--eval-episodes", type=int, default=50)
+    p.add_argument("--eval-episodes", type=int, default=50, help="seeded episodes per evaluation")
     p.add_argument(
         "--eval-envs", type=int, default=None, help="default: --eval-episodes on the GPU sim, 2 on the CPU sim"
     )
-    p.add_argument("--eval-seed", type=int, default=10_000)
+    p.add_argument("--eval-seed", type=int, default=10_000, help="evaluation episodes use seeds from here")
     p.add_argument("--max-minutes", type=float, default=None, help="stop after this much wall time, then evaluate")
     p.add_argument(
         "--progress-every",
@@ -327,8 +329,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         default=15.0,
         help="seconds between progress lines (frames, frames/s, last return) between evaluations; -1: none",
     )
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", default="outputs/sac")
+    p.add_argument("--seed", type=int, default=0, help="seed of envs, policy and sampling")
+    p.add_argument(
+        "--out", default="outputs/sac", help="output folder: sac_checkpoint.pt, sac_checkpoint_best.pt, metrics.jsonl"
+    )
     args = p.parse_args(argv)
     sim_device.check_arguments(p, args, smoke=args.smoke)
     gpu = args.sim_backend == "gpu"  # the GPU sim's defaults; a GPU learner on the CPU sim takes the CPU sim's
