@@ -100,7 +100,7 @@ def child_picture(contender: str) -> dict:
         env = ManiSkillEnv("PickCube-v1", obs_mode="rgb", batch_size=[])
         env.rollout(2)
         if contender == "held" and not held:
-            held.append(sapien.render.RenderSystem(env.base_env.scene.sub_scenes[0].render_system.device))
+            held.append(sapien.render.RenderSystem(env.unwrapped.scene.sub_scenes[0].render_system.device))
         env.close()
         del env
         gc.collect()

@@ -83,7 +83,7 @@ def check_maniskill_env(
     env = ManiSkillEnv(env_id, num_envs=num_envs, **maniskill_kwargs)
     raws: list = []
     try:
-        per_sub_env = isinstance(env.base_env, CPUVectorEnv)
+        per_sub_env = isinstance(env.unwrapped, CPUVectorEnv)
         on_gpu = env.gpu_sim_enabled
         gym_kwargs = dict(maniskill_kwargs)
         if per_sub_env:

@@ -128,7 +128,7 @@ def record_video(env: Any, make_policy: Any, path: Path, *, steps: int, seed: in
             td = step_mdp(td)
             if done:
                 td = env.reset()
-    control_freq = getattr(base.base_env, "control_freq", 20) or 20  # before close(): a closed env has no base_env
+    control_freq = getattr(base.unwrapped, "control_freq", 20) or 20  # before close(), which drops it
     env.close()
     fps = max(1, round(control_freq / repeat))
     imageio.mimsave(path, frames, fps=fps, macro_block_size=16)

@@ -83,7 +83,7 @@ def save_trajectories(path: str | Path, rollout: TensorDictBase, env: Any) -> li
                 f"save_trajectories needs the ManiSkill env that made the rollout, got {type(env).__name__}."
             )
         wrapper = inner
-    base = wrapper.base_env
+    base = wrapper.unwrapped
     infos = set(wrapper.info_entries.values())
     obs_keys = [k for k in wrapper.observation_spec.keys() if k not in infos and k != "pixels"]
     steps = rollout if rollout.batch_dims > 1 else rollout.unsqueeze(0)

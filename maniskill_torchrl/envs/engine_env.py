@@ -5,8 +5,8 @@ library has.
 - ``ManiSkillEnv(env_id, num_envs=N)`` on the CPU sim, which holds one env per process, runs the
   batched CPU engine (:class:`~maniskill_torchrl.CPUVectorEnv`: one process per sub-env, one
   shared-memory block for the batch), with the same batch ``[N]``, keys, specs and dtypes as the
-  GPU sim. Partial resets there are seeded with the next draw of the env's seeds, so that runs
-  stay reproducible from ``set_seed`` whatever each process's torch RNG holds.
+  GPU sim. Partial resets there are seeded with the next draw of the env's seeds, as the adapter
+  seeds them on the GPU sim (sub-env ``i`` takes the draw plus ``i``).
 - ManiSkill called under :func:`torch.inference_mode` (by default on the CPU sim).
 - A CPU-sim env on an accelerator (``device="cuda"``) moves each step's host outputs up in one
   non-blocking transfer (:class:`~maniskill_torchrl._internal.host_gather.HostGather`).
@@ -21,6 +21,7 @@ library has.
 
 from __future__ import annotations
 
+import inspect
 from typing import Any
 
 import torch
@@ -36,6 +37,13 @@ from maniskill_torchrl.engines.cpu_vector import CPUVectorEnv
 from maniskill_torchrl.envs import maniskill
 
 __all__ = ["ManiSkillWrapper", "ManiSkillEnv"]
+
+# The adapter's own keyword arguments of ManiSkillEnv (the others go to gym.make).
+_WRAPPER_KEYWORDS = tuple(
+    name
+    for name, param in inspect.signature(maniskill.ManiSkillEnv.__init__).parameters.items()
+    if param.kind is inspect.Parameter.KEYWORD_ONLY and name != "num_envs"
+)
 
 
 class _MissingActionError(KeyError):
@@ -57,7 +65,7 @@ class ManiSkillWrapper(maniskill.ManiSkillWrapper):
     Keyword Args:
         inference_mode (bool, optional): call ManiSkill's ``step``, ``reset`` and ``render`` under
             :func:`torch.inference_mode`: the same values for less CPU on the CPU sim; outputs are
-            then copied out as normal tensors, and your own calls into ``env.base_env`` must be
+            then copied out as normal tensors, and your own calls into ``env.unwrapped`` must be
             made in inference mode too. A ``CPUVectorEnv``'s sub-envs run it themselves and
             return fresh copies, whatever this says. Defaults to ``False``.
         device, batch_size, from_pixels, pixels_only, pixels_key, info_keys,
@@ -84,7 +92,9 @@ class ManiSkillWrapper(maniskill.ManiSkillWrapper):
     _workers: CPUVectorEnv | None = None
     _gather: HostGather | None = None
 
-    def __init__(self, env: Any = None, *, inference_mode: bool | None = False, **kwargs: Any) -> None:
+    _inference = False
+
+    def __init__(self, env: Any = None, *, inference_mode: bool | None = None, **kwargs: Any) -> None:
         frame_skip = kwargs.get("frame_skip", 1)
         if frame_skip != 1:
             # The adapter's frame skip stops every env at the first done one; ManiSkill's
@@ -94,14 +104,19 @@ class ManiSkillWrapper(maniskill.ManiSkillWrapper):
                 "from maniskill_torchrl.transforms, ManiSkill's ActionRepeatWrapper semantics: rewards summed over "
                 "the steps each env really took, its last observation kept."
             )
-        self._inference = inference_mode  # None: ManiSkillEnv decides by the sim
+        if inference_mode is not None:  # None: False, or what ManiSkillEnv decided by the sim
+            self._inference = inference_mode
         super().__init__(env, **kwargs)
 
-    def _sim_layout(self, kwargs: dict) -> tuple[torch.device, int]:
-        env = kwargs.get("env")
-        if isinstance(env, CPUVectorEnv):
-            return torch.device("cpu"), env.num_envs
-        return super()._sim_layout(kwargs)
+    def _check_kwargs(self, kwargs: dict) -> None:
+        engine = kwargs["env"]
+        if not isinstance(engine, CPUVectorEnv):
+            return super()._check_kwargs(kwargs)
+        # Sub-envs made by the engine itself: no gym wrapper, one ManiSkill env each.
+        if self._from_pixels and engine.render_mode != "rgb_array":
+            raise ValueError(
+                f"from_pixels=True needs sub-envs made with render_mode='rgb_array' (got {engine.render_mode!r})."
+            )
 
     def _build_env(self, env: Any, **kwargs: Any) -> Any:
         engine = env if isinstance(env, CPUVectorEnv) else None
@@ -192,16 +207,6 @@ class ManiSkillWrapper(maniskill.ManiSkillWrapper):
                 "td = env.rand_action(td), or run a policy that writes them."
             ) from err
 
-    def _reset(
-        self, tensordict: TensorDictBase | None = None, *, seed: int | None = None, **kwargs: Any
-    ) -> TensorDictBase:
-        if self._workers is not None and seed is None and not kwargs.get("set_state"):
-            reset = tensordict.get("_reset", None) if tensordict is not None else None
-            # A partial reset of CPU sub-envs starts from a drawn seed (sub-env i gets d + i).
-            if reset is not None and bool(reset.any()) and not bool(reset.all()):
-                seed = self._seeds.draw()
-        return super()._reset(tensordict, seed=seed, **kwargs)
-
     # ------------------------------------------------------------------ EnvHooks
     def request_worker_repeat(self, repeat: int) -> bool:
         """Has the next step apply its action up to ``repeat`` times inside the CPU sub-envs.
@@ -245,7 +250,7 @@ class ManiSkillWrapper(maniskill.ManiSkillWrapper):
         render engine are freed with the last one elsewhere. A closed env says so when used."""
         env = self.__dict__.get("_env")
         if env is not None and not isinstance(env, ClosedEnv):
-            self._env = ClosedEnv(f"{type(self).__name__}({self._env_name(env)})")
+            self._env = ClosedEnv(f"{type(self).__name__}({maniskill._env_id(env)})")
             env.close()
         self._workers = None
         super().close(raise_if_closed=raise_if_closed)
@@ -306,34 +311,26 @@ class ManiSkillEnv(maniskill.ManiSkillEnv, ManiSkillWrapper):
         inference_mode: bool | None = None,
         **kwargs: Any,
     ) -> None:
-        self._in_process = in_process
-        super().__init__(env_name, num_envs=num_envs, inference_mode=inference_mode, **kwargs)
-
-    def _check_kwargs(self, kwargs: dict) -> None:
-        super()._check_kwargs(kwargs)
-        # Before any process or sim starts.
-        maniskill_kwargs = {k: v for k, v in kwargs.items() if k not in ("env_name", "num_envs")}
-        check_assets(kwargs["env_name"], maniskill_kwargs)
-
-    def _build_env(self, env_name: str, num_envs: int = 1, **kwargs: Any) -> Any:
-        on_cpu = self._sim_device.type == "cpu"
-        if self._inference is None:
-            self._inference = on_cpu
+        keys = {k: kwargs.pop(k) for k in _WRAPPER_KEYWORDS if k in kwargs}
+        pixels, batch_size = keys.get("from_pixels", False), keys.get("batch_size")
+        kwargs = maniskill._task_kwargs(env_name, num_envs, pixels, batch_size, kwargs)
+        check_assets(env_name, kwargs)  # before any process or sim starts
+        on_cpu = maniskill._cpu_sim(num_envs, kwargs.get("sim_backend", "auto"))
+        # Inference mode by default on the CPU sim: this class owns the ManiSkill env, so nothing else calls into it.
+        self._inference = on_cpu if inference_mode is None else inference_mode
         if num_envs > 1 and on_cpu:
-            # The CPU sim holds one env per process: one process per env.
-            kwargs["sim_backend"] = "physx_cpu"
-            engine = CPUVectorEnv(env_name, num_envs, in_process=self._in_process, **kwargs)
-            wrapper = super(maniskill.ManiSkillEnv, self)
+            # The CPU sim holds one env per process: one process per env, in the batched CPU engine.
+            self._env_id = env_name
+            engine = CPUVectorEnv(env_name, num_envs, in_process=in_process, **{**kwargs, "sim_backend": "physx_cpu"})
             try:
-                wrapper._check_kwargs({"env": engine})
-                return wrapper._build_env(engine)
+                ManiSkillWrapper.__init__(self, engine, **keys)
             except Exception:
                 engine.close()
                 raise
+            return
         if not on_cpu:
             enable_physx_gpu()
         kwargs = default_render_backend(kwargs)
         with no_asset_prompt(env_name), render_device_errors(env_name, kwargs.get("render_backend")):
-            env = super()._build_env(env_name, num_envs, **kwargs)
-        remember_render_device(env, env_name)
-        return env
+            super().__init__(env_name, num_envs=num_envs, **keys, **kwargs)
+        remember_render_device(self._env, env_name)

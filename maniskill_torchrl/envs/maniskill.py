@@ -39,7 +39,6 @@ __all__ = ["ManiSkillWrapper", "ManiSkillEnv"]
 
 # ManiSkill's sim backend names, read as devices ("physx_cuda:1" is cuda:1).
 _DEVICE_ALIASES = {"physx_cpu": "cpu", "physx_cuda": "cuda", "gpu": "cuda"}
-_CPU_BACKENDS = ("cpu", "physx_cpu")
 # Top-level keys an info entry must not take: it is stored as "info_<key>" instead.
 _RESERVED_KEYS = frozenset({"reward", "done", "terminated", "truncated", "action"})
 
@@ -111,7 +110,11 @@ def _reuses_buffers(base: Any) -> bool:
 
 
 def _render_frame_shape(base: Any) -> tuple[int, ...]:
-    """``(H, W, 3)`` of one env's frame: from its one camera, else a render (tiled)."""
+    """``(H, W, 3)`` of one env's frame: from its one camera, else a render (tiled).
+
+    ManiSkill has no public name for its render cameras' configs; reading them spares
+    a render before the first reset.
+    """
     configs = getattr(base, "_human_render_camera_configs", {}) or {}
     if len(configs) == 1:
         (cfg,) = configs.values()
@@ -125,10 +128,64 @@ def _cpu_sim(num_envs: int, sim_backend: Any) -> bool:
     ManiSkill's ``"auto"`` is the CPU sim for one env, and for more the GPU sim where
     there is CUDA.
     """
+    from mani_skill.envs.utils.system.backend import CPU_SIM_BACKENDS
+
     backend = str(sim_backend).lower()
     if backend == "auto":
         return num_envs == 1 or not torch.cuda.is_available()
-    return backend in _CPU_BACKENDS
+    return backend in CPU_SIM_BACKENDS
+
+
+def _task_kwargs(
+    env_name: str, num_envs: Any, from_pixels: bool, batch_size: Any, kwargs: dict
+) -> dict:
+    """``gym.make``'s keyword arguments for a task, checked before anything is built.
+
+    The sim's device is not guessed here: the wrapper reads it from the built env.
+    """
+    available = ManiSkillWrapper.available_envs
+    if env_name not in available:
+        stem = env_name.split("-")[0].lower()
+        close = [e for e in available if stem and stem in e.lower()][:5]
+        raise ValueError(
+            f"Unknown ManiSkill env {env_name!r}. "
+            + (f"Did you mean one of {close}? " if close else "")
+            + "ManiSkillEnv.available_envs lists the registered tasks."
+        )
+    if not isinstance(num_envs, int) or isinstance(num_envs, bool) or num_envs < 1:
+        raise ValueError(f"num_envs must be a positive int, got {num_envs!r}.")
+    ManiSkillWrapper._checked_batch_size(batch_size, num_envs)
+    kwargs = dict(kwargs)
+    if from_pixels and kwargs.get("render_mode") is None:
+        # An explicit None (a config's default) asks for no render mode either.
+        kwargs["render_mode"] = "rgb_array"
+    if from_pixels and kwargs["render_mode"] != "rgb_array":
+        raise ValueError(
+            "from_pixels=True needs render_mode='rgb_array' "
+            f"(got render_mode={kwargs['render_mode']!r})."
+        )
+    backend = kwargs.get("sim_backend", "auto")
+    if _cpu_sim(num_envs, backend):
+        return kwargs
+    if not torch.cuda.is_available():
+        raise ValueError(
+            f"sim_backend={backend!r} is ManiSkill's GPU sim, which needs CUDA, and "
+            "torch.cuda.is_available() is False: use sim_backend='cpu' (or 'auto')."
+        )
+    index = str(backend).partition(":")[2]
+    if index and not (index.isdigit() and int(index) < torch.cuda.device_count()):
+        raise ValueError(
+            f"sim_backend={backend!r} names CUDA device {index}, and this machine has "
+            f"{torch.cuda.device_count()} (torch.cuda.device_count()): name one of "
+            "them, or pass sim_backend='gpu' for the current one."
+        )
+    return kwargs
+
+
+def _env_id(env: Any) -> str:
+    """The task id of a ManiSkill env (its class name where it has no spec)."""
+    spec = getattr(env.unwrapped, "spec", None)
+    return spec.id if spec is not None else type(env.unwrapped).__name__
 
 
 # --------------------------------------------------------------------------- specs
@@ -201,14 +258,14 @@ def _info_spec(
 
 # --------------------------------------------------------------------------- helpers
 class _ResetSeeds:
-    """The seeds of the full resets.
+    """The seeds of the resets.
 
     After :meth:`set` ``(s)``, :meth:`draw` gives ``s``, then the draws of
     ``numpy.random.RandomState(s)``; ``None`` until seeded. ManiSkill seeds its
     episode RNG (and forks torch's) only in a seeded ``reset``: an unseeded one
     draws from the process's global RNG, so two envs of one process, or one env
-    after other code used that RNG, would not repeat. Partial resets are unseeded,
-    as ManiSkill's ``options={"env_idx": ...}`` resets are.
+    after other code used that RNG, would not repeat. Partial resets take a draw
+    too, for the same reason.
     """
 
     def __init__(self) -> None:
@@ -297,9 +354,10 @@ class ManiSkillWrapper(_EnvWrapper):
     ManiSkill's own tensors.
 
     Partial resets (a ``"_reset"`` mask) reset the masked envs only, through
-    ManiSkill's ``options={"env_idx": ...}``, unseeded as ManiSkill does. After
-    :meth:`set_seed` ``(s)`` the next full reset is ``reset(seed=s)`` and each later
-    one is seeded with the next draw of ``numpy.random.RandomState(s)``.
+    ManiSkill's ``options={"env_idx": ...}``. After :meth:`set_seed` ``(s)`` the
+    next reset is ``reset(seed=s)`` and each later one, partial or full, is seeded
+    with the next draw of ``numpy.random.RandomState(s)`` (ManiSkill's seeded
+    partial reset also reseeds the episode RNG of the envs it leaves running).
     :meth:`get_state` saves the sim state and ``env.reset(td, set_state=True,
     scene_state=state)`` (or :meth:`reset_to_state`) restores it, as Isaac Lab's
     wrapper does.
@@ -342,7 +400,7 @@ class ManiSkillWrapper(_EnvWrapper):
     Examples:
         >>> import gymnasium as gym  # doctest: +SKIP
         >>> import mani_skill.envs  # doctest: +SKIP
-        >>> from torchrl.envs import ManiSkillWrapper
+        >>> from torchrl.envs import ManiSkillWrapper  # doctest: +SKIP
         >>> base = gym.make("PickCube-v1", obs_mode="state")  # doctest: +SKIP
         >>> env = ManiSkillWrapper(base)  # doctest: +SKIP
         >>> _ = env.set_seed(0)  # doctest: +SKIP
@@ -405,52 +463,46 @@ class ManiSkillWrapper(_EnvWrapper):
             )
         if pixels_only and not from_pixels:
             raise ValueError("pixels_only=True needs from_pixels=True.")
-        if env is not None:
-            kwargs["env"] = env
+        base = getattr(env, "unwrapped", None)
+        if getattr(base, "device", None) is None or not hasattr(base, "num_envs"):
+            raise TypeError(
+                "ManiSkillWrapper wraps ManiSkill 3 envs only, got "
+                f"{type(env).__name__}: ManiSkillWrapper(gym.make('PickCube-v1')) "
+                "after `import mani_skill.envs`, or ManiSkillEnv('PickCube-v1'). For "
+                "other gym envs use torchrl.envs.GymWrapper."
+            )
         self._from_pixels = bool(from_pixels)
         self._pixels_only = bool(pixels_only)
         self._pixels_key = pixels_key
         self._info_keys_asked = info_keys
         self._seeds = _ResetSeeds()
-        self._state_row: TensorDictBase | None = None
-        self._sim_device, num_envs = self._sim_layout(kwargs)
+        # The sim's device as ManiSkill reports it ("physx_cuda:1" gives cuda:1).
+        self._sim_device = _canonical_device(base.device)
         super().__init__(
+            env=env,
             device=self._checked_device(device),
-            batch_size=self._checked_batch_size(batch_size, num_envs),
+            batch_size=self._checked_batch_size(batch_size, base.num_envs),
             allow_done_after_reset=allow_done_after_reset,
             **kwargs,
         )
 
     # --------------------------------------------------------------- build
-    def _sim_layout(self, kwargs: dict) -> tuple[torch.device, int]:
-        """The sim's device and ``num_envs``, read before anything is built."""
+    def _check_kwargs(self, kwargs: dict) -> None:
+        """What TorchRL cannot serve in the env to wrap."""
         from mani_skill.envs.sapien_env import BaseEnv
 
-        env = kwargs.get("env")
-        if env is None:
-            raise TypeError(
-                "ManiSkillWrapper needs a ManiSkill env: "
-                "ManiSkillWrapper(gym.make('PickCube-v1')) or "
-                "ManiSkillEnv('PickCube-v1')."
-            )
-        base = getattr(env, "unwrapped", None)
+        env = kwargs["env"]
+        base = env.unwrapped
         if not isinstance(base, BaseEnv):
             raise TypeError(
                 "ManiSkillWrapper wraps ManiSkill 3 envs only, got "
-                f"{type(env).__name__} (unwrapped: {type(base).__name__}). Make one "
-                "with gym.make('<Task>-v1', ...) after `import mani_skill.envs`; for "
-                "other gym envs use torchrl.envs.GymWrapper."
+                f"{type(env).__name__} (unwrapped: {type(base).__name__})."
             )
         if self._from_pixels and base.render_mode != "rgb_array":
             raise ValueError(
                 "from_pixels=True needs an env made with render_mode='rgb_array' "
                 f"(got render_mode={base.render_mode!r})."
             )
-        return _canonical_device(base.device), base.num_envs
-
-    def _check_kwargs(self, kwargs: dict) -> None:
-        """What TorchRL cannot serve in the env to wrap."""
-        env = kwargs["env"]
         resetter = _auto_resetting_wrapper(env)
         if resetter is not None:
             raise ValueError(
@@ -459,7 +511,6 @@ class ManiSkillWrapper(_EnvWrapper):
                 "done envs itself. Wrap the ManiSkill env without it (gym.make(...), "
                 "or ManiSkillVectorEnv(env, auto_reset=False)), or use ManiSkillEnv."
             )
-        base = env.unwrapped
         freq = getattr(base, "reconfiguration_freq", 0) or 0
         if base.num_envs > 1 and freq:
             if not _maniskill_layer(env, "ignore_terminations"):
@@ -517,8 +568,8 @@ class ManiSkillWrapper(_EnvWrapper):
         return None
 
     @property
-    def base_env(self) -> Any:
-        """The ManiSkill ``BaseEnv``, the env under the gym wrappers."""
+    def unwrapped(self) -> Any:
+        """The ManiSkill ``BaseEnv`` under the gym wrappers (gymnasium's name)."""
         return self._env.unwrapped
 
     @property
@@ -613,7 +664,7 @@ class ManiSkillWrapper(_EnvWrapper):
         missing = [k for k in asked if k not in infos]
         if missing:
             raise ValueError(
-                f"info_keys {missing} are not reported by {self._env_name(base)}: "
+                f"info_keys {missing} are not reported by {_env_id(base)}: "
                 f"available info keys are {sorted(infos)}."
             )
         return {k: infos[k] for k in asked}
@@ -706,7 +757,8 @@ class ManiSkillWrapper(_EnvWrapper):
             if env_idx is not None:
                 states = states[env_idx]
             options["reset_to_env_states"] = {"env_states": states.to_dict()}
-        elif "env_idx" not in options:
+        else:
+            # Partial resets too: ManiSkill seeds torch's RNG only for seeded resets.
             if seed is not None:
                 self._seeds.set(seed)
             seed = self._seeds.draw()
@@ -761,8 +813,8 @@ class ManiSkillWrapper(_EnvWrapper):
 
     def _sim_action(self, tensordict: TensorDictBase) -> Any:
         """Returns the step's action as ManiSkill takes it, its shape checked."""
-        action = tensordict["action"]  # a KeyError names the entries there are
         if self._action_names is None:
+            action = tensordict[self.action_key]  # a KeyError names the entries there
             if action.shape != self._action_shapes:
                 raise ValueError(
                     f"ManiSkill action of shape {tuple(action.shape)}, expected "
@@ -774,7 +826,7 @@ class ManiSkillWrapper(_EnvWrapper):
             return action.to(self._sim_device) if self._moves else action
         out = {}
         for k in self._action_names:
-            a = action[k]
+            a = tensordict["action", k]
             if a.shape != self._action_shapes[k]:
                 raise ValueError(
                     f"ManiSkill action {k!r} of shape {tuple(a.shape)}, expected "
@@ -793,7 +845,7 @@ class ManiSkillWrapper(_EnvWrapper):
         On ``env.device``.
 
         Examples:
-            >>> from torchrl.envs import ManiSkillEnv
+            >>> from torchrl.envs import ManiSkillEnv  # doctest: +SKIP
             >>> env = ManiSkillEnv("PickCube-v1", obs_mode="state")  # doctest: +SKIP
             >>> start = env.reset(seed=1)  # doctest: +SKIP
             >>> state = env.get_state()  # doctest: +SKIP
@@ -803,34 +855,41 @@ class ManiSkillWrapper(_EnvWrapper):
             >>> (obs == start["observation"]).all().item()  # doctest: +SKIP
             True
         """
-        state = self.base_env.get_state_dict()
+        state = self.unwrapped.get_state_dict()
         state = TensorDict._new_unsafe(
             _tensor_tree(state, self.device),
-            batch_size=torch.Size([self.base_env.num_envs]),
+            batch_size=torch.Size([self.unwrapped.num_envs]),
             device=self.device,
         )
-        if self._state_row is None:
-            self._state_row = state[0]
         return state[0] if self._unbatched else state
 
     def reset_to_state(
         self,
-        scene_state: TensorDictBase | Mapping,
+        state: TensorDictBase | Mapping,
         tensordict: TensorDictBase | None = None,
         **kwargs: Any,
     ) -> TensorDictBase:
         """Resets every env, or those of ``tensordict``'s ``"_reset"`` mask, to a state.
 
         Args:
-            scene_state (TensorDictBase or dict): :meth:`get_state`'s layout, one row
-                per env, or one env's state without the batch dim (a trajectory
+            state (TensorDictBase or dict): :meth:`get_state`'s layout, one row per
+                env, or one env's state without the batch dim (a ManiSkill trajectory
                 file's ``env_states`` step), which every env being reset takes. Its
                 keys, shapes and dtypes are checked before anything reaches the sim.
             tensordict (TensorDictBase, optional): may hold a ``"_reset"`` mask.
 
-        The same as ``env.reset(tensordict, set_state=True, scene_state=...)``.
+        Keyword Args:
+            **kwargs: passed to :meth:`~torchrl.envs.EnvBase.reset`.
+
+        Returns:
+            The reset's TensorDict, as :meth:`~torchrl.envs.EnvBase.reset` returns it.
+
+        The same as ``env.reset(tensordict, set_state=True, scene_state=state)``. It
+        is a method of this env: called on a :class:`~torchrl.envs.TransformedEnv`, it
+        reaches this env and skips the transforms; ``transformed.reset(td,
+        set_state=True, scene_state=state)`` runs them.
         """
-        return self.reset(tensordict, set_state=True, scene_state=scene_state, **kwargs)
+        return self.reset(tensordict, set_state=True, scene_state=state, **kwargs)
 
     def _checked_states(self, states: TensorDictBase | Mapping) -> TensorDictBase:
         """``states`` as a ``[num_envs]`` TensorDict of the env's state layout."""
@@ -841,9 +900,10 @@ class ManiSkillWrapper(_EnvWrapper):
             )
         if not isinstance(states, TensorDictBase):
             states = TensorDict(_tensor_tree(states), batch_size=[])
-        if self._state_row is None:
-            self.get_state()  # a read of the sim: learns the layout
-        row, num_envs = self._state_row, self.base_env.num_envs
+        # The layout of a read of the sim: a reconfiguration may change it.
+        num_envs = self.unwrapped.num_envs
+        row = self.get_state()
+        row = row if self._unbatched else row[0]
         want, got = set(row.keys(True, True)), set(states.keys(True, True))
         if want != got:
             raise ValueError(
@@ -870,19 +930,14 @@ class ManiSkillWrapper(_EnvWrapper):
                     f"scene_state{_path(key)} has dtype {value.dtype}; this env's "
                     f"is {ref.dtype}."
                 )
-            # A plain tensor: memory-mapped rows cannot be sent to worker processes.
+            # A plain tensor (not a memory-mapped one), copied: the sim reads it later.
             out.set(key, value.as_subclass(torch.Tensor).to(ref.dtype, copy=True))
         return out
 
     # --------------------------------------------------------------- misc
-    @staticmethod
-    def _env_name(env: Any) -> str:
-        spec = getattr(env.unwrapped, "spec", None)
-        return spec.id if spec is not None else type(env.unwrapped).__name__
-
     def __repr__(self) -> str:
         return (
-            f"{type(self).__name__}(env={self._env_name(self._env)}, "
+            f"{type(self).__name__}(env={_env_id(self._env)}, "
             f"num_envs={self._env.unwrapped.num_envs}, "
             f"batch_size={list(self.batch_size)}, device={self.device}, "
             f"gpu_sim={self.gpu_sim_enabled})"
@@ -904,6 +959,9 @@ class _ManiSkillEnvMeta(_EnvPostInit):
                     f"(got {len(args)} positional arguments)."
                 )
             env_name = args[0] if args else kwargs.pop("env_name")
+            if kwargs.get("num_envs", 1) == 1:
+                # One unbatched env per worker: the ParallelEnv's batch, [num_workers].
+                kwargs.setdefault("batch_size", [])
 
             def make_env(_env_name=env_name, _kwargs=kwargs):
                 return cls(_env_name, **_kwargs)
@@ -943,7 +1001,7 @@ class ManiSkillEnv(ManiSkillWrapper, metaclass=_ManiSkillEnvMeta):
     Simulation and Rendering for Generalizable Embodied AI", arXiv:2410.00425.
 
     Examples:
-        >>> from torchrl.envs import ManiSkillEnv
+        >>> from torchrl.envs import ManiSkillEnv  # doctest: +SKIP
         >>> env = ManiSkillEnv("PickCube-v1", obs_mode="state_dict")  # doctest: +SKIP
         >>> env.observation_spec["agent", "qpos"].shape  # doctest: +SKIP
         torch.Size([1, 9])
@@ -955,64 +1013,59 @@ class ManiSkillEnv(ManiSkillWrapper, metaclass=_ManiSkillEnvMeta):
         :class:`~torchrl.trainers.algorithms.configs.envs_libs.ManiSkillEnvConfig`.
     """
 
-    def __init__(self, env_name: str, *, num_envs: int = 1, **kwargs: Any) -> None:
-        if kwargs.get("from_pixels") and kwargs.get("render_mode") is None:
-            # An explicit None (a config's default) asks for no render mode either.
-            kwargs["render_mode"] = "rgb_array"
-        super().__init__(env_name=env_name, num_envs=num_envs, **kwargs)
-
-    def _sim_layout(self, kwargs: dict) -> tuple[torch.device, int]:
-        env_name, num_envs = kwargs["env_name"], kwargs["num_envs"]
-        available = self.available_envs
-        if env_name not in available:
-            stem = env_name.split("-")[0].lower()
-            close = [e for e in available if stem and stem in e.lower()][:5]
-            raise ValueError(
-                f"Unknown ManiSkill env {env_name!r}. "
-                + (f"Did you mean one of {close}? " if close else "")
-                + "ManiSkillEnv.available_envs lists the registered tasks."
+    def __init__(
+        self,
+        env_name: str,
+        *,
+        num_envs: int = 1,
+        device: DEVICE_TYPING | None = None,
+        batch_size: Sequence[int] | None = None,
+        from_pixels: bool = False,
+        pixels_only: bool = False,
+        pixels_key: NestedKey = "pixels",
+        info_keys: list[str] | None = None,
+        frame_skip: int = 1,
+        allow_done_after_reset: bool = False,
+        **kwargs: Any,
+    ) -> None:
+        if not _has_maniskill:
+            raise ImportError(
+                "mani_skill python package was not found. Install it with: "
+                "pip install mani_skill"
             )
-        if not isinstance(num_envs, int) or isinstance(num_envs, bool) or num_envs < 1:
-            raise ValueError(f"num_envs must be a positive int, got {num_envs!r}.")
-        if self._from_pixels and kwargs.get("render_mode") != "rgb_array":
-            raise ValueError(
-                "from_pixels=True needs render_mode='rgb_array' "
-                f"(got render_mode={kwargs.get('render_mode')!r})."
-            )
-        if _cpu_sim(num_envs, kwargs.get("sim_backend", "auto")):
-            return torch.device("cpu"), num_envs
-        if not torch.cuda.is_available():
-            raise ValueError(
-                f"sim_backend={kwargs.get('sim_backend')!r} is ManiSkill's GPU sim, "
-                "which needs CUDA, and torch.cuda.is_available() is False: use "
-                "sim_backend='cpu' (or 'auto')."
-            )
-        return _canonical_device("cuda"), num_envs
-
-    def _check_kwargs(self, kwargs: dict) -> None:
-        return None  # _sim_layout checked them, before EnvBase was made
-
-    def _build_env(self, env_name: str, num_envs: int = 1, **kwargs: Any) -> Any:
         import gymnasium as gym
         import mani_skill.envs  # noqa: F401
 
-        if num_envs > 1 and self._sim_device.type == "cpu":
+        if pixels_only and not from_pixels:
+            raise ValueError("pixels_only=True needs from_pixels=True.")
+        kwargs = _task_kwargs(env_name, num_envs, from_pixels, batch_size, kwargs)
+        if num_envs > 1 and _cpu_sim(num_envs, kwargs.get("sim_backend", "auto")):
             raise ValueError(
                 f"num_envs={num_envs} on ManiSkill's CPU sim, which holds one env per "
                 f"process: pass num_workers={num_envs} for a ParallelEnv of single "
                 "envs, or sim_backend='gpu' on a CUDA machine."
             )
+        self._env_id = env_name
         with warnings.catch_warnings():
             # ManiSkill warns that it lowers float64 spaces' precision.
             warnings.filterwarnings("ignore", message=".*precision lowered.*")
             env = gym.make(env_name, num_envs=num_envs, **kwargs)
         try:
-            super()._check_kwargs({"env": env})
-            return super()._build_env(env)
+            super().__init__(
+                env,
+                device=device,
+                batch_size=batch_size,
+                from_pixels=from_pixels,
+                pixels_only=pixels_only,
+                pixels_key=pixels_key,
+                info_keys=info_keys,
+                frame_skip=frame_skip,
+                allow_done_after_reset=allow_done_after_reset,
+            )
         except Exception:
             env.close()
             raise
 
     @property
     def env_name(self) -> str:
-        return self._constructor_kwargs["env_name"]
+        return self._env_id

@@ -378,7 +378,7 @@ def test_one_sub_env_runs_in_this_process_alone():
 def test_a_failure_in_sub_env_0_leaves_the_workers_ready(pick):
     """Sub-env 0 steps in this process while the workers step theirs: its error is raised once
     they are done, and the env steps on (no call left pending in gymnasium's AsyncVectorEnv)."""
-    vec = pick.base_env
+    vec = pick.unwrapped
     td = pick.reset(seed=0)
 
     def fail(action):
@@ -399,7 +399,7 @@ def test_bad_input(pick):
     with pytest.raises(ValueError, match="positive int, got 0"):
         CPUVectorEnv("PickCube-v1", 0)
     with pytest.raises(ValueError, match="3 seeds for 2 sub-envs"):
-        pick.base_env.reset(seed=[1, 2, 3])
+        pick.unwrapped.reset(seed=[1, 2, 3])
     td = pick.reset(seed=0)
     with pytest.raises(ValueError, match=r"shape \(2, 7\)"):
         pick.step(td.set("action", torch.zeros(N, 7)))

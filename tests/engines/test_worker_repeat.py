@@ -54,7 +54,7 @@ class StepSpy:
 
 def worker_elapsed(env) -> list[int]:
     """Each sub-env's own ManiSkill ``elapsed_steps``: the physics steps it really took."""
-    return [int(e) for e in env.base_env.call("elapsed_steps")]
+    return [int(e) for e in env.unwrapped.call("elapsed_steps")]
 
 
 def assert_sub_env(td, i, obs, info, what, reward=None, terminated=None, truncated=None):
@@ -89,7 +89,7 @@ def run_schedule(env):
 def test_each_sub_env_is_maniskills_action_repeat(push):
     env = TransformedEnv(push, ActionRepeat(REPEAT))
     oracles = [ActionRepeatWrapper(make_gym_env("PushCube-v1", **PUSH), REPEAT) for _ in range(N)]
-    vec = push.base_env
+    vec = push.unwrapped
     ends = []  # (outer step, sub-env, inner step at which its episode ended)
     try:
         td = env.reset(seed=11)
@@ -131,12 +131,12 @@ def test_each_sub_env_is_maniskills_action_repeat(push):
 def test_same_bits_as_the_inner_loop(push):
     """A transform before ActionRepeat keeps the TorchRL inner loop (one round trip per inner
     step, finished sub-envs stepped and discarded): same data, more round trips."""
-    with StepSpy(push.base_env) as spy:
+    with StepSpy(push.unwrapped) as spy:
         fast = run_schedule(TransformedEnv(push, ActionRepeat(REPEAT)))
     assert spy.calls == len(ACTIONS)
-    with StepSpy(push.base_env) as spy:
+    with StepSpy(push.unwrapped) as spy:
         loop = run_schedule(TransformedEnv(push, Compose(StepCounter(), ActionRepeat(REPEAT))))
-    assert push.base_env.repeat == 1, "no worker repeat with a transform in between"
+    assert push.unwrapped.repeat == 1, "no worker repeat with a transform in between"
     assert spy.calls > 2 * len(ACTIONS), spy.calls
     for t, (a, b) in enumerate(zip(fast, loop)):
         b = b.exclude("step_count", ("next", "step_count"))
@@ -147,7 +147,7 @@ def test_same_bits_as_the_inner_loop(push):
 
 def test_removing_the_transform_restores_plain_steps(push):
     env = TransformedEnv(push, ActionRepeat(REPEAT))
-    vec = push.base_env
+    vec = push.unwrapped
     td = env.reset(seed=3)
     td = step_mdp(env.step(td.set("action", ACTIONS[0])))
     assert worker_elapsed(push) == [3, 3] and vec.repeat == REPEAT
@@ -179,10 +179,10 @@ def test_nested_repeats_never_double_repeat(push):
     loops over it: up to 6 physics steps per outer step, 3 round trips."""
     env = TransformedEnv(push, Compose(ActionRepeat(2), ActionRepeat(3)))
     td = env.reset(seed=5)
-    with StepSpy(push.base_env) as spy:
+    with StepSpy(push.unwrapped) as spy:
         td = env.step(td.set("action", ACTIONS[0]))
     # max_episode_steps=5: the third round trip ends the episodes at their first inner step.
-    assert spy.calls == 3 and push.base_env.repeat == 2
+    assert spy.calls == 3 and push.unwrapped.repeat == 2
     assert worker_elapsed(push) == [5, 5] and td["next", "elapsed_steps"].tolist() == [5, 5]
     assert td["next", "truncated"].all()
 
@@ -193,8 +193,8 @@ def test_outer_partial_step_keeps_the_inner_loop(push):
     env = TransformedEnv(push, ActionRepeat(REPEAT))
     td = env.reset(seed=7)
     td = step_mdp(env.step(td.set("action", ACTIONS[0])))  # delegated: repeat 3 in the workers
-    with StepSpy(push.base_env) as spy:
+    with StepSpy(push.unwrapped) as spy:
         td = env.step(td.set("action", ACTIONS[1]).set("_step", torch.tensor([True, False])))
     # Both stepped together (batch-locked); sub-env 0 reaches its time limit at inner step 2.
-    assert spy.calls == 2 and push.base_env.repeat == 1
+    assert spy.calls == 2 and push.unwrapped.repeat == 1
     assert td["next", "elapsed_steps"].tolist() == [5, 4] and worker_elapsed(push) == [5, 5]

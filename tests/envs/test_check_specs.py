@@ -107,7 +107,7 @@ def test_a_leaf_off_the_env_device_is_named(monkeypatch):
 
     def stray_leaf(self, tensordict):
         out = step(self, tensordict)
-        if int(self.base_env.elapsed_steps[0]) == 2:
+        if int(self.unwrapped.elapsed_steps[0]) == 2:
             entries(out)["success"] = out["success"].to("meta")
         return out
 

@@ -356,7 +356,7 @@ def test_equal_to_raw_loop_reset_seed(envs, name):
 def test_same_seed_same_episode(envs):
     """Two runs from the same seed give identical data (and reset(seed) restarts the draws)."""
     env = envs.torchrl("pick")
-    actions = [as_td_action(a) for a in random_actions(env.base_env.single_action_space, 2 * SHORT)]
+    actions = [as_td_action(a) for a in random_actions(env.unwrapped.single_action_space, 2 * SHORT)]
 
     def run():
         env.set_seed(9)
@@ -378,7 +378,7 @@ def test_outputs_not_aliased(envs):
     td = env.reset(seed=0)
     first_reset = td.clone()
     outs = []
-    for a in random_actions(env.base_env.single_action_space, 4, seed=1):
+    for a in random_actions(env.unwrapped.single_action_space, 4, seed=1):
         td = env.step(td.set("action", as_td_action(a)))
         outs.append(td["next"])
         td = step_mdp(td)

@@ -51,7 +51,7 @@ def env():
 
 def _in_use(env) -> str:
     """The render device that the library remembers for ``env``: its own."""
-    device = _device_name(env.base_env.backend.render_device)
+    device = _device_name(env.unwrapped.backend.render_device)
     assert "PickCube-v1" in render_devices_in_use()[device]
     return device
 
@@ -99,7 +99,7 @@ def test_closed_env_lets_its_scene_go():
     """A closed env that is still referenced holds neither its ManiSkill env nor its scene (with
     the scene goes SAPIEN's render engine, once no other env renders)."""
     env = ManiSkillEnv("PickCube-v1", **KW)
-    base, scene = weakref.ref(env.base_env), weakref.ref(env.base_env.scene)
+    base, scene = weakref.ref(env.unwrapped), weakref.ref(env.unwrapped.scene)
     env.close()
     gc.collect()
     assert base() is None and scene() is None
@@ -132,7 +132,7 @@ cpu.close()
 del cpu
 gc.collect()
 env = ManiSkillEnv("PickCube-v1", **kw)  # the CPU engine is gone: CUDA renders now
-assert env.base_env.backend.render_device.is_cuda()
+assert env.unwrapped.backend.render_device.is_cuda()
 env.rand_step(env.reset(seed=0))
 env.close()
 print("REAL MIX OK")

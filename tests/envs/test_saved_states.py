@@ -97,7 +97,7 @@ def test_a_worker_error_closes_the_env_with_a_clear_error():
     try:
         env.reset(seed=0)
         with pytest.raises(RuntimeError, match=r"worker\(s\) of sub-env\(s\) \[1\] raised AttributeError"):
-            env.base_env.call("no_such_method")
+            env.unwrapped.call("no_such_method")
         with pytest.raises(RuntimeError, match=r"is closed \(worker\(s\) of sub-env\(s\) \[1\] raised"):
             env.rollout(2)  # was: AttributeError: 'NoneType' object has no attribute 'send'
     finally:

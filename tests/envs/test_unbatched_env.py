@@ -70,7 +70,7 @@ def test_same_specs_and_steps_as_cpu_unbatch(env_id: str, obs_mode: str, inferen
         assert env.batch_size == torch.Size([]) and env.inference_mode == oracle.base_env.inference_mode
         assert env.output_spec == oracle.output_spec
         assert env.input_spec == oracle.input_spec
-        space = env.base_env.single_action_space
+        space = env.unwrapped.single_action_space
         actions = random_actions(space, 2 * MAX_STEPS + 2, seed=3)
         got, want = _run(env, actions, seed=9), _run(oracle, actions, seed=9)
         assert got["next", "done"].sum() == 2  # two episodes ended, two automatic resets
@@ -160,7 +160,7 @@ def test_pixels_and_rgb_observations() -> None:
     try:
         assert env.output_spec == oracle.output_spec
         assert env.observation_spec["pixels"].shape[-1] == 3 and env.observation_spec["pixels"].ndim == 3
-        actions = random_actions(env.base_env.single_action_space, 2, seed=2)
+        actions = random_actions(env.unwrapped.single_action_space, 2, seed=2)
         got, want = _run(env, actions, seed=6), _run(oracle, actions, seed=6)
         assert got["next", "pixels"].dtype == torch.uint8 and got["next", "pixels"].any()
         _assert_equal_tds(got, want)
@@ -224,7 +224,7 @@ def test_transform_stack_equals_cpu_unbatch_stack() -> None:
     )
     try:
         assert env.base_env.batch_size == () and env.output_spec == oracle.output_spec
-        actions = random_actions(env.base_env.base_env.single_action_space, 2 * MAX_STEPS, seed=8)
+        actions = random_actions(env.base_env.unwrapped.single_action_space, 2 * MAX_STEPS, seed=8)
         got, want = _run(env, actions, seed=2), _run(oracle, actions, seed=2)
         assert got["next", "done"].any() and got["next", "episode", "episode_len"].max() > 1
         _assert_equal_tds(got, want)

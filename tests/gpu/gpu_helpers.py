@@ -54,8 +54,6 @@ SKIP_REASON = (
 requires_gpu = pytest.mark.skipif(not RUN, reason=SKIP_REASON)
 
 NUM_ENVS = 512 if CUDA else max(CPU_ENVS, 1)
-# Partial resets: unseeded on the GPU sim (as ManiSkill does); the batched CPU env seeds them.
-PARTIAL_RESETS_SEEDED = not CUDA and NUM_ENVS > 1
 SIM_BACKEND = "gpu" if CUDA else "physx_cpu"
 SEED = 123
 # Task -> episode limit: above 8 steps (numpy's pairwise sum switches to blocks of 8 there) and

@@ -244,6 +244,44 @@ def test_device_that_is_not_there_is_refused(gym_env, monkeypatch):
         ManiSkillWrapper(gym_env, device="nowhere")
 
 
+def _cuda_machine(monkeypatch, devices: int) -> None:
+    """What torch answers on a machine with ``devices`` CUDA devices, device 0 current."""
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: devices)
+    monkeypatch.setattr(torch.cuda, "current_device", lambda: 0)
+
+
+def test_sim_device_is_read_from_the_built_env(gym_env, monkeypatch):
+    """``sim_backend="physx_cuda:1"``: the sim's device is what ManiSkill reports (cuda:1), not a
+    guess from the backend's name (which gave the current device, cuda:0). The env stands for
+    ManiSkill's GPU sim on device 1; outputs are asked on the CPU so that no tensor is made there."""
+    _cuda_machine(monkeypatch, 2)
+    monkeypatch.setattr(gym_env.unwrapped, "device", torch.device("cuda", 1))
+    made = []
+
+    def make(env_id, **kwargs):
+        made.append(kwargs["sim_backend"])
+        return gym_env
+
+    monkeypatch.setattr(gym, "make", make)
+    env = adapter.ManiSkillEnv("PickCube-v1", sim_backend="physx_cuda:1", device="cpu", obs_mode="state")
+    assert made == ["physx_cuda:1"]
+    assert env._sim_device == torch.device("cuda", 1) and env.device == torch.device("cpu")
+    # Actions and partial-reset indices go to the sim's device: cuda:1.
+    assert env._moves
+    wrapper = ManiSkillWrapper(gym_env, device="cpu")
+    assert wrapper._sim_device == torch.device("cuda", 1)
+
+
+def test_sim_device_that_is_not_there_is_refused(monkeypatch):
+    """``physx_cuda:1`` on a one-GPU machine is refused before anything is built."""
+    _cuda_machine(monkeypatch, 1)
+    monkeypatch.setattr(gym, "make", lambda *a, **k: pytest.fail("gym.make was called"))
+    for backend in ("physx_cuda:1", "cuda:3", "physx_cuda:x"):
+        with pytest.raises(ValueError, match=r"names CUDA device .* this machine has 1"):
+            adapter.ManiSkillEnv("PickCube-v1", num_envs=2, sim_backend=backend)
+
+
 # ----------------------------------------------------------------------------- host syncs
 def test_partial_reset_makes_one_host_sync(gym_env, monkeypatch):
     """A reset with a ``"_reset"`` mask reads which envs once (one ``nonzero``), whether it
@@ -421,11 +459,11 @@ def test_reconfiguration_that_partial_resets_cannot_do_is_refused(gym_env, monke
     vec = ManiSkillVectorEnv(gym_env, auto_reset=False, ignore_terminations=True)
     monkeypatch.setattr(base, "num_envs", 4)  # a GPU-sim batch
     monkeypatch.setattr(base, "reconfiguration_freq", 1)
-    # The wrapper's checks of an env, on the options they read.
+    # The adapter's checks of an env, on the options they read.
     options = type("Options", (), {"_from_pixels": False})()
     with pytest.raises(ValueError, match=r"reconfiguration_freq=1 with num_envs=4.*reconfiguration_freq=0"):
-        ManiSkillWrapper._check_kwargs(options, {"env": gym_env})
+        adapter.ManiSkillWrapper._check_kwargs(options, {"env": gym_env})
     # Envs that end together never reset partially: ManiSkillVectorEnv's own exception.
-    ManiSkillWrapper._check_kwargs(options, {"env": vec})
+    adapter.ManiSkillWrapper._check_kwargs(options, {"env": vec})
     monkeypatch.setattr(base, "reconfiguration_freq", 0)
-    ManiSkillWrapper._check_kwargs(options, {"env": gym_env})
+    adapter.ManiSkillWrapper._check_kwargs(options, {"env": gym_env})

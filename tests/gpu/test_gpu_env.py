@@ -6,13 +6,12 @@ MS-CartpoleBalance-v1 (random actions make envs fail at different steps: partial
 
 - lockstep: ManiSkillEnv over a :class:`~gpu_helpers.Recorder`; every step's tensordict (root
   and ``"next"``) equals, with ``torch.equal``, what ManiSkill returned for that very call, the
-  env received exactly our actions, and every reset is the one a raw loop makes (seed from
-  ``set_seed`` for full resets, ``options={"env_idx": done envs}`` unseeded for partial ones);
+  env received exactly our actions, and every reset is the one a raw loop makes (the next seed
+  drawn from ``set_seed``'s, with ``options={"env_idx": done envs}`` for partial ones);
 - independent instances: a fresh ``gym.make`` env driven by a plain loop and a fresh
-  ManiSkillEnv, same seeds, same actions, same global torch seed (ManiSkill's unseeded partial
-  resets draw from it): equal with ``torch.equal``. Should they differ, a second raw instance
-  tells whether ManiSkill reproduces its own run; if it does not, the test says so and skips
-  (ManiSkill does not promise reproducible GPU runs), else it fails;
+  ManiSkillEnv, same seeds, same actions, same global torch seed: equal with ``torch.equal``.
+  Should they differ, a second raw instance tells whether ManiSkill reproduces its own run; if it
+  does not, the test says so and skips (ManiSkill does not promise reproducible GPU runs), else it fails;
 - partial reset: after 4 steps, ``env.reset(td.set("_reset", mask))`` calls ManiSkill with
   exactly the masked ``env_idx``, leaves every entry of the other envs bit for bit, gives the
   masked envs ManiSkill's reset data, and the next step counts on from 4 for the others.
@@ -29,7 +28,6 @@ from torchrl.envs.utils import step_mdp
 from gpu_helpers import (
     CUDA,
     NUM_ENVS,
-    PARTIAL_RESETS_SEEDED,
     SEED,
     TASKS,
     Recorder,
@@ -49,7 +47,7 @@ pytestmark = requires_gpu
 
 # Steps per task: several PushCube episodes (11-step limit), several Cartpole failures.
 N_STEPS = {"PushCube-v1": 3 * TASKS["PushCube-v1"] + 2, "MS-CartpoleBalance-v1": 40}
-TORCH_SEED = 7  # the global torch RNG, which ManiSkill's unseeded (partial) resets draw from
+TORCH_SEED = 7  # the global torch RNG, set alike in both runs
 
 
 def _merge(done: torch.Tensor, new, old):
@@ -91,7 +89,7 @@ def _run_torchrl(env, acts, seed: int) -> list:
 @pytest.mark.parametrize("task", list(TASKS))
 def test_lockstep_equal_to_maniskill_calls(task):
     env = shared_env(task)
-    acts = actions(env.base_env.single_action_space, env.device, N_STEPS[task], seed=1)
+    acts = actions(env.unwrapped.single_action_space, env.device, N_STEPS[task], seed=1)
     recorder = Recorder(env._env)
     with swapped(env, recorder):
         steps = _run_torchrl(env, acts, SEED)
@@ -121,10 +119,8 @@ def test_lockstep_equal_to_maniskill_calls(task):
             prev_obs, prev_info = reset_obs, tensor_infos(reset_info)
             n_full += 1
         else:
-            if PARTIAL_RESETS_SEEDED:  # the batched CPU env (CPU check of this test)
-                assert arg["seed"] == next(seeds), f"step {t}: partial reset seed {arg['seed']}"
-            else:
-                assert arg["seed"] is None, f"step {t}: a partial reset is unseeded on the GPU sim, got {arg['seed']}"
+            # Seeded as full resets are (ManiSkill seeds torch's RNG only in a seeded reset).
+            assert arg["seed"] == next(seeds), f"step {t}: partial reset seed {arg['seed']}"
             assert_same(env_idx_of(arg["options"]), done.nonzero().squeeze(-1), f"step {t}: env_idx")
             prev_obs = _merge(done, reset_obs, obs)
             prev_info = {k: _merge(done, v, prev_info[k]) for k, v in tensor_infos(reset_info).items()}
@@ -138,7 +134,7 @@ def test_lockstep_equal_to_maniskill_calls(task):
 
 def _raw_loop(genv, acts, seeds: list[int]) -> list[dict]:
     """A plain ManiSkill GPU loop with ManiSkillEnv's reset rule: all envs done -> reset(seed=next
-    seed), some -> reset(options={"env_idx": done}) unseeded, keeping the others' observations."""
+    seed), some -> reset(seed=next seed, options={"env_idx": done}), keeping the others' observations."""
     seeds = iter(seeds)
     obs, info = genv.reset(seed=next(seeds))
     prev, prev_info = obs.clone(), clone_tree(tensor_infos(info))
@@ -152,7 +148,7 @@ def _raw_loop(genv, acts, seeds: list[int]) -> list[dict]:
             prev, reset_info = genv.reset(seed=next(seeds))
             prev, prev_info = prev.clone(), clone_tree(tensor_infos(reset_info))
         elif done.any():
-            reset_obs, reset_info = genv.reset(options={"env_idx": done.nonzero().squeeze(-1)})
+            reset_obs, reset_info = genv.reset(seed=next(seeds), options={"env_idx": done.nonzero().squeeze(-1)})
             prev = _merge(done, reset_obs, prev)
             prev_info = {k: _merge(done, v, prev_info[k]) for k, v in tensor_infos(reset_info).items()}
     return records
@@ -214,7 +210,7 @@ def test_partial_reset_touches_only_masked_envs(task):
     if NUM_ENVS < 2:
         pytest.skip("a partial reset needs several envs (GPU sim)")
     env = shared_env(task)
-    acts = actions(env.base_env.single_action_space, env.device, 5, seed=3)
+    acts = actions(env.unwrapped.single_action_space, env.device, 5, seed=3)
     g = torch.Generator().manual_seed(0)
     mask = torch.rand(NUM_ENVS, generator=g) < 0.3
     mask[0], mask[-1] = True, False
@@ -236,7 +232,7 @@ def test_partial_reset_touches_only_masked_envs(task):
 
     assert len(recorder.calls) == n_calls + 2  # one reset, one step
     kind, arg, (reset_obs, reset_info) = recorder.calls[n_calls]
-    assert kind == "reset" and (arg["seed"] is None or PARTIAL_RESETS_SEEDED)
+    assert kind == "reset" and arg["seed"] is not None  # seeded from set_seed's draws
     assert_same(env_idx_of(arg["options"]), mask.nonzero().squeeze(-1), "env_idx passed to ManiSkill")
 
     assert "_reset" not in after.keys()

@@ -57,7 +57,7 @@ def test_rgb_frames_outlive_later_steps_and_resets():
         env.set_seed(SEED)
         td = env.reset()
         copies, kept = [td.clone()], [td.exclude("action")]
-        acts = actions(env.base_env.base_env.single_action_space, env.device, 8, seed=3)
+        acts = actions(env.base_env.unwrapped.single_action_space, env.device, 8, seed=3)
         for a in acts:  # 5-step episodes, repeat 2: every env ends mid-repeat, then resets
             td, td_next = env.step_and_maybe_reset(td.set("action", a[:n]))
             copies.append(td["next"].clone())
@@ -162,7 +162,7 @@ def test_partial_reset_to_saved_states():
         saved = env.get_state()
         assert saved.batch_size == env.batch_size and saved.device == env.device
         td = start
-        for a in actions(env.base_env.single_action_space, env.device, 3, seed=6):
+        for a in actions(env.unwrapped.single_action_space, env.device, 3, seed=6):
             td = env.step(td.set("action", a))["next"]
         now = td["observation"].clone()
         mask = (torch.arange(NUM_ENVS, device=env.device) % 2 == 0).unsqueeze(-1)

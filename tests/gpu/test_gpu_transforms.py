@@ -88,7 +88,7 @@ def test_action_repeat_equals_maniskill_wrapper(task, repeat):
     env = shared_env(task)
     raw = env._env
     n_outer = 2 * TASKS[task] // repeat + 2  # two episodes at least
-    acts = actions(env.base_env.single_action_space, env.device, n_outer, seed=10 + repeat)
+    acts = actions(env.unwrapped.single_action_space, env.device, n_outer, seed=10 + repeat)
 
     # 1. ManiSkill's ActionRepeatWrapper on the GPU sim, with ManiSkillEnv's reset rule.
     recorder = Recorder(raw)
@@ -99,7 +99,7 @@ def test_action_repeat_equals_maniskill_wrapper(task, repeat):
     for a in acts:
         i0 = len(recorder.calls)
         out = oracle.step(a.clone())
-        counter = env.base_env.elapsed_steps.clone()  # the live counter after this outer step
+        counter = env.unwrapped.elapsed_steps.clone()  # the live counter after this outer step
         theirs.append((clone_tree(out), counter))
         inner_steps.append(recorder.calls[i0:])
         _, _, terminated, truncated, _ = out
@@ -177,7 +177,7 @@ def test_episode_metrics_equal_maniskill_vector_env(task):
     raw = env._env
     limit = TASKS[task]
     n_steps = 2 * limit + 3  # two full episodes and the start of a third
-    acts = actions(env.base_env.single_action_space, env.device, n_steps, seed=20)
+    acts = actions(env.unwrapped.single_action_space, env.device, n_steps, seed=20)
 
     # 1. ManiSkillVectorEnv's metrics on the GPU sim (it auto-resets ended episodes).
     recorder = Recorder(raw)

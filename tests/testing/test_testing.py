@@ -109,7 +109,7 @@ def test_check_maniskill_env_fails_where_the_library_is_wrong(monkeypatch):
 
     def off_by_one(self, tensordict):
         out = step(self, tensordict)
-        if int(self.base_env.elapsed_steps[0]) == 3:
+        if int(self.unwrapped.elapsed_steps[0]) == 3:
             out["reward"] = out["reward"] + 1
         return out
 

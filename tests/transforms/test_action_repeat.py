@@ -367,7 +367,7 @@ def test_serial_env_of_maniskill_skips_ended_envs():
     for action in actions:
         out = env.step(td.set("action", action))
         nxt = out["next"]
-        inner = [int(e.base_env.base_env.elapsed_steps[0]) for e in serial._envs]
+        inner = [int(e.base_env.unwrapped.elapsed_steps[0]) for e in serial._envs]
         assert nxt["elapsed_steps"].tolist() == inner  # no step past an env's end
         done = nxt["done"].squeeze(-1)
         # One env ended before the other: stepping both would have left equal counters.

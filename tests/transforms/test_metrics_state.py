@@ -44,7 +44,7 @@ def pick():
 def test_return_continues_a_kept_step_after_another_episode(pick, other_steps):
     env = pick
     assert env.transform[-1]._make_stats().summation == "numpy"
-    actions = random_actions(env.base_env.base_env.action_space, 3 + other_steps + 12, seed=other_steps)
+    actions = random_actions(env.base_env.unwrapped.action_space, 3 + other_steps + 12, seed=other_steps)
     kept = env.rollout(3, Scripted(actions[:3]), tensordict=env.reset(seed=11), auto_reset=False)
     root = kept[-1]["next"].clone()
     env.rollout(other_steps, Scripted(actions[3 : 3 + other_steps]), tensordict=env.reset(seed=12), auto_reset=False)

@@ -281,3 +281,10 @@ def test_apply_stops_before_writing_where_an_anchor_is_missing(tmp_path):
     assert "lines start with 'from .meltingpot import '" in proc.stderr
     assert not (tmp_path / "torchrl/envs/libs/maniskill.py").exists()
     assert not (tmp_path / "test").exists()
+
+
+# ----------------------------------------------------------------------------- the description
+def test_description_figures_are_measured():
+    """README.md's figures are what ``describe.py`` writes, from a record of this very kit."""
+    proc = _run([sys.executable, UPSTREAM / "describe.py", "--check"], cwd=ROOT, check=False)
+    assert proc.returncode == 0, proc.stdout + proc.stderr

@@ -158,6 +158,7 @@ class TestManiSkillSpecs:
         env = make(_TASK, obs_mode="state", info_keys=["success"])
         assert env.info_keys == ["success"]
         assert "elapsed_steps" not in env.observation_spec.keys()
+        check_env_specs(env, seed=_SEED)
         td = env.rand_step(env.reset(seed=_SEED))
         assert td["next", "success"].shape == torch.Size([1])
 
@@ -304,13 +305,25 @@ class TestManiSkillPixels:
             obs, _, _, _, info = raw.step(_raw_action(td))
             td = td["next"]
 
+    def test_nested_pixels_key(self, raw_envs, make):
+        env = make(
+            _TASK, obs_mode="rgb", from_pixels=True, pixels_key=("cams", "frame")
+        )
+        check_env_specs(env, seed=_SEED)
+        raw = raw_envs(obs_mode="rgb", render_mode="rgb_array")
+        td = env.reset(seed=_SEED)
+        raw.reset(seed=_SEED)
+        frame = torch.as_tensor(raw.render())
+        assert td["cams", "frame"].shape == frame.shape
+        torch.testing.assert_close(td["cams", "frame"], frame, rtol=0, atol=0)
+
 
 class TestManiSkillWrapper:
     def test_wrapper_matches_maniskill(self, raw_envs):
         wrapped = _raw_env(obs_mode="state_dict")
         env = ManiSkillWrapper(wrapped)
         try:
-            assert env.base_env is wrapped.unwrapped
+            assert env.unwrapped is wrapped.unwrapped
             check_env_specs(env, seed=_SEED)
             _assert_matches_raw(env, raw_envs(obs_mode="state_dict"))
         finally:
@@ -331,7 +344,7 @@ class TestManiSkillWrapper:
         env = ManiSkillEnv(_TASK, obs_mode="state", num_workers=2)
         try:
             assert isinstance(env, ParallelEnv)
-            assert env.batch_size == torch.Size([2, 1])
+            assert env.batch_size == torch.Size([2])
             check_env_specs(env, seed=_SEED)
         finally:
             env.close()
@@ -368,6 +381,14 @@ class TestManiSkillErrors:
         for args, kwargs in (((), {}), ((_TASK, "state"), {})):
             with pytest.raises(TypeError, match="task id, and only it"):
                 ManiSkillEnv(*args, num_workers=2, **kwargs)
+
+    def test_sim_device_that_is_not_there_is_refused(self, monkeypatch):
+        # What torch answers on a one-GPU machine: physx_cuda:1 is refused before
+        # anything is built.
+        monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+        monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+        with pytest.raises(ValueError, match="device 1, and this machine has 1"):
+            ManiSkillEnv(_TASK, num_envs=2, sim_backend="physx_cuda:1")
 
     def test_auto_reset_refused(self):
         from mani_skill.vector.wrappers.gymnasium import ManiSkillVectorEnv
@@ -413,8 +434,12 @@ try:
 except Exception as err:  # e.g. SAPIEN could not fetch its PhysX GPU library
     print(f"ManiSkill's GPU sim cannot start here: {err}")
     sys.exit(3)
-env = ManiSkillEnv("PickCube-v1", num_envs=4, sim_backend="gpu", obs_mode="state")
-assert env.gpu_sim_enabled and env.device.type == "cuda"
+# The sim's device is the one named: the last CUDA device.
+last = torch.cuda.device_count() - 1
+env = ManiSkillEnv(
+    "PickCube-v1", num_envs=4, sim_backend=f"physx_cuda:{last}", obs_mode="state"
+)
+assert env.gpu_sim_enabled and env.device == torch.device("cuda", last)
 check_env_specs(env, seed=7)
 rollout = env.rollout(3, tensordict=env.reset(seed=7), auto_reset=False)
 assert rollout.shape == torch.Size([4, 3])
@@ -426,6 +451,12 @@ out = env.reset(td)
 torch.testing.assert_close(out["observation"][1:], td["observation"][1:])
 assert out["elapsed_steps"][0] == 0
 assert (out["elapsed_steps"][1:] == td["elapsed_steps"][1:]).all()
+# Partial resets are seeded from set_seed: two runs give the same first envs.
+starts = []
+for _ in range(2):
+    env.reset(seed=7)
+    starts.append(env.reset(td)["observation"][0])
+torch.testing.assert_close(starts[0], starts[1], rtol=0, atol=0)
 env.close()
 """
 
