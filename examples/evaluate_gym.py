@@ -8,8 +8,10 @@ carries ``info["episode"]`` (``success_once``, ``success_at_end``, ``return``,
 ``episode_len``...). The script prints those for each finished episode and
 their averages.
 
-``--checkpoint PATH`` evaluates what ``examples/ppo_torchrl.py`` or ``examples/sac_torchrl.py`` saved
-(``ppo_checkpoint.pt`` / ``sac_checkpoint.pt``, loaded and checked by ``ppo_checkpoint.load_checkpoint``):
+``--checkpoint PATH`` evaluates what ``examples/ppo_torchrl.py``, ``examples/sac_torchrl.py`` or
+``examples/trainers/train.py`` saved (``ppo_checkpoint.pt`` / ``sac_checkpoint.pt`` / the run folder's
+``policy.pt``, whose actor is rebuilt from the config saved with it; loaded and checked by
+``ppo_checkpoint.load_checkpoint``):
 its task and control mode by default, its actor acting deterministically (the
 TanhNormal's ``tanh(loc)`` scaled to the action bounds), episode ``k`` seeded
 ``--seed + k``. ``--video PATH`` writes the first ``--video-episodes`` episodes
@@ -30,6 +32,7 @@ Usage::
     python examples/evaluate_gym.py --policy zero --max-episode-steps 20
     python examples/evaluate_gym.py --checkpoint outputs/ppo/ppo_checkpoint.pt --episodes 10 --video eval.mp4
     python examples/evaluate_gym.py --checkpoint outputs/ppo/ppo_checkpoint.pt --backend torchrl
+    python examples/evaluate_gym.py --checkpoint outputs/<date>/<time>/policy.pt   # a train.py run
 """
 
 from __future__ import annotations
@@ -63,7 +66,12 @@ def make_env(
     from maniskill_torchrl.wrappers.action_repeat import ActionRepeatWrapper
     from maniskill_torchrl.wrappers.gymnasium import CPUGymWrapper
 
+    from maniskill_torchrl._internal.rendering import quiet_maniskill
+
     warnings.filterwarnings("ignore", message=".*precision lowered by casting.*")
+    # In every worker process (and gymnasium's dummy env in this one): ManiSkill's notes that say nothing
+    # actionable here (no CUDA to render with: it renders on the CPU; its task builders' "no initial pose").
+    quiet_maniskill()
     kwargs: dict[str, Any] = {"num_envs": 1, "obs_mode": obs_mode, "sim_backend": "physx_cpu"}
     if max_episode_steps is not None:
         kwargs["max_episode_steps"] = max_episode_steps
@@ -257,8 +265,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         "--checkpoint",
         default=None,
         metavar="PATH",
-        help="evaluate the ppo_checkpoint.pt of examples/ppo_torchrl.py or the sac_checkpoint.pt of "
-        "examples/sac_torchrl.py (the file, or its --out folder)",
+        help="evaluate the ppo_checkpoint.pt of examples/ppo_torchrl.py, the sac_checkpoint.pt of "
+        "examples/sac_torchrl.py or the policy.pt of examples/trainers/train.py (the file, or its folder)",
     )
     p.add_argument("--control-mode", default=None, help="default: the checkpoint's, else the task's")
     p.add_argument(

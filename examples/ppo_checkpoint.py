@@ -1,5 +1,7 @@
-"""The checkpoints ``examples/ppo_torchrl.py`` and ``examples/sac_torchrl.py`` save: loading, checking,
-and the policy they hold (both a TanhNormal actor reading ``"observation"``; ``format`` says which).
+"""The checkpoints ``examples/ppo_torchrl.py``, ``examples/sac_torchrl.py`` and ``examples/trainers/train.py``
+save: loading, checking, and the policy they hold (each a TanhNormal actor reading ``"observation"``;
+``format`` says which). ``train.py``'s ``policy.pt`` holds its actor's config as the YAML composed it
+(``actor``, resolved), so that the actor is rebuilt from it whatever the overrides were (the ``hydra`` extra).
 
 One implementation for the evaluation scripts (``evaluate_gym.py``, both its
 gym and its TorchRL backend):
@@ -31,13 +33,16 @@ from tensordict import TensorDict
 from ppo_torchrl import CHECKPOINT_FORMAT, make_models
 
 SAC_FORMAT = "maniskill_torchrl.sac.v1"  # sac_torchrl.CHECKPOINT_FORMAT (imported lazily: torchrl's SAC)
-FORMATS = (CHECKPOINT_FORMAT, SAC_FORMAT)
+TRAINER_FORMAT = "maniskill_torchrl.trainer.v1"  # trainers/train.py's POLICY_FORMAT (train.py needs hydra)
+FORMATS = (CHECKPOINT_FORMAT, SAC_FORMAT, TRAINER_FORMAT)
 CHECKPOINT_NAME = "ppo_checkpoint.pt"
-CHECKPOINT_NAMES = (CHECKPOINT_NAME, "sac_checkpoint.pt")
+CHECKPOINT_NAMES = (CHECKPOINT_NAME, "sac_checkpoint.pt", "policy.pt")
 REQUIRED_KEYS = ("env_id", "obs_mode", "control_mode", "obs_dim", "act_dim", "hidden", "repeat", "policy")
+TRAINER_KEYS = ("env_id", "obs_mode", "control_mode", "obs_dim", "act_dim", "actor", "policy")
 _WHAT_TO_PASS = (
     f"pass the {CHECKPOINT_NAME} that examples/ppo_torchrl.py writes to its --out folder "
-    f"(default outputs/ppo/{CHECKPOINT_NAME}), or the sac_checkpoint.pt of examples/sac_torchrl.py"
+    f"(default outputs/ppo/{CHECKPOINT_NAME}), the sac_checkpoint.pt of examples/sac_torchrl.py, or the "
+    "policy.pt that examples/trainers/train.py writes to its run folder"
 )
 
 
@@ -46,7 +51,7 @@ class CheckpointError(ValueError):
 
 
 def load_checkpoint(path: str | Path, env_id: str | None = None) -> dict[str, Any]:
-    """Loads and checks a PPO checkpoint of ``examples/ppo_torchrl.py`` (on the CPU).
+    """Loads and checks a checkpoint of the examples (on the CPU): PPO's, SAC's or train.py's ``policy.pt``.
 
     ``path`` is the file or the ``--out`` folder holding it. ``env_id``: the task
     the caller means to evaluate; ``None`` takes the checkpoint's. Raises
@@ -82,11 +87,16 @@ def load_checkpoint(path: str | Path, env_id: str | None = None) -> dict[str, An
             f"{path} has checkpoint format {ckpt['format']!r}; this script reads {' or '.join(map(repr, FORMATS))}: "
             f"{_WHAT_TO_PASS} with this version of the examples"
         )
-    missing = [k for k in REQUIRED_KEYS if k not in ckpt]
+    trainer = ckpt["format"] == TRAINER_FORMAT
+    if trainer:
+        ckpt.setdefault("repeat", 1)
+        ckpt.setdefault("hidden", None)
+    missing = [k for k in (TRAINER_KEYS if trainer else REQUIRED_KEYS) if k not in ckpt]
     if missing:
+        writer = "examples/trainers/train.py" if trainer else "examples/ppo_torchrl.py"
         raise CheckpointError(
-            f"{path} is an incomplete {CHECKPOINT_FORMAT} checkpoint (missing {', '.join(missing)}): "
-            "it was not written by examples/ppo_torchrl.py or was cut short; train again to rewrite it"
+            f"{path} is an incomplete {ckpt['format']} checkpoint (missing {', '.join(missing)}): "
+            f"it was not written by this version of {writer} or was cut short; train again to rewrite it"
         )
     if ckpt["obs_mode"] != "state":
         raise CheckpointError(
@@ -144,21 +154,52 @@ def policy_from_checkpoint(ckpt: dict[str, Any], env: Any, control_mode: str | N
     obs_dim = env.observation_spec["observation"].shape[-1]
     act_dim = env.action_spec_unbatched.shape[-1]
     check_sizes(ckpt, obs_dim, act_dim, control_mode)
-    if ckpt["format"] == SAC_FORMAT:
+    if ckpt["format"] == TRAINER_FORMAT:
+        policy = actor_from_config(ckpt["actor"])
+        built_by = "its saved config (the actor of examples/trainers/train.py)"
+    elif ckpt["format"] == SAC_FORMAT:
         from sac_torchrl import make_models as make_sac_models
 
         policy, _ = make_sac_models(obs_dim, env.action_spec_unbatched, ckpt["hidden"], torch.device("cpu"))
+        built_by = f"examples/sac_torchrl.py (hidden {ckpt['hidden']})"
     else:
         policy, _ = make_models(env, ckpt["hidden"], torch.device("cpu"))
+        built_by = f"examples/{ckpt.get('algorithm', 'ppo')}_torchrl.py (hidden {ckpt['hidden']})"
     try:
         policy.load_state_dict(ckpt["policy"])
     except (RuntimeError, KeyError) as exc:
         raise CheckpointError(
             f"the policy weights in {ckpt.get('path', 'the checkpoint')} do not fit the actor of "
-            f"examples/{ckpt.get('algorithm', 'ppo')}_torchrl.py (hidden {ckpt['hidden']}, obs {obs_dim}, "
-            f"act {act_dim}): {str(exc).splitlines()[0]}. Re-train with this version of the example"
+            f"{built_by}, obs {obs_dim}, act {act_dim}: {str(exc).splitlines()[0]}. "
+            "Re-train with this version of the example"
         ) from exc
     return policy.eval()
+
+
+def actor_from_config(actor_yaml: str) -> Any:
+    """The actor ``train.py``'s YAML built (TorchRL's model config, resolved, as saved in ``policy.pt``),
+    with fresh weights, on the CPU. Needs the ``hydra`` extra, as ``train.py`` does."""
+    from maniskill_torchrl._internal.extras import require
+
+    require("hydra", "evaluating a policy.pt of examples/trainers/train.py")
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    import maniskill_torchrl.configs  # noqa: F401  (the library's config targets, e.g. the ppo_mlp network)
+
+    return instantiate(OmegaConf.create(actor_yaml))
+
+
+def actor_sizes(actor: Any) -> tuple[int, int]:
+    """``(obs_dim, act_dim)`` of an MLP actor reading ``"observation"``: its first ``Linear``'s inputs,
+    and the action its deterministic step gives for a zero observation (what ``train.py`` records)."""
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    first = next(m for m in actor.modules() if isinstance(m, torch.nn.Linear))
+    td = TensorDict({"observation": torch.zeros(1, first.in_features, device=first.weight.device)}, batch_size=[1])
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        action = actor(td).get("action")
+    return first.in_features, action.shape[-1]
 
 
 def numpy_policy(policy: Any) -> Callable[[np.ndarray], np.ndarray]:

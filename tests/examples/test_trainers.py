@@ -12,10 +12,12 @@ from __future__ import annotations
 
 import csv
 import math
+import re
 import runpy
 import sys
 from pathlib import Path
 
+import gymnasium as gym
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
@@ -25,17 +27,20 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 from torchrl.envs import Compose, ExcludeTransform, TransformedEnv
+from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.record.loggers import Logger
 from torchrl.trainers import Trainer
 
+import evaluate_gym
 import maniskill_torchrl.configs as configs
+import ppo_checkpoint
 from maniskill_torchrl import ManiSkillEnv
 from maniskill_torchrl.evaluation import evaluate_policy
 from maniskill_torchrl.pipeline import make_env
 from maniskill_torchrl.testing import assert_tensordict_equal
 from maniskill_torchrl.trainer_hooks import KeepRandomFrames, LogEpisodeMetrics, SuccessRateEvaluation
 from maniskill_torchrl.transforms import EpisodeMetrics, IgnoreTerminations
-from support.helpers import make_gym_env, record_episodes, seeded_rollout
+from support.helpers import EXAMPLES, make_gym_env, record_episodes, seeded_rollout, start
 
 ROOT = Path(__file__).resolve().parents[2]
 TRAINERS = ROOT / "examples" / "trainers"
@@ -300,13 +305,82 @@ def test_sac_pushcube_trains(tmp_path, monkeypatch):
     saved = torch.load(tmp_path / "run" / "policy.pt", map_location="cpu", weights_only=True)  # train.py's checkpoint
     assert saved["format"] == "maniskill_torchrl.trainer.v1" and saved["env_id"] == "PushCube-v1"
     assert saved["frames"] == 256 and saved["policy"]
+    assert (saved["obs_dim"], saved["act_dim"], saved["repeat"]) == (35, 4, 1)
+    assert "_make_tanh_normal_model" in saved["actor"]  # the actor's config, rebuilt by evaluate_gym.py
 
 
-def test_ppo_pullcube_trains(tmp_path, monkeypatch):
-    trainer, scalars = _run_train_py("ppo_pullcube", OVERRIDES["ppo_pullcube"], tmp_path / "run", monkeypatch)
+@pytest.fixture(scope="module")
+def ppo_run(tmp_path_factory):
+    """The PPO YAML trained a few hundred frames by ``train.py``: (trainer, scalars, run folder)."""
+    run_dir = tmp_path_factory.mktemp("ppo") / "run"
+    run_dir.mkdir()
+    with pytest.MonkeyPatch.context() as monkeypatch:
+        trainer, scalars = _run_train_py("ppo_pullcube", OVERRIDES["ppo_pullcube"], run_dir, monkeypatch)
+    return trainer, scalars, run_dir
+
+
+def test_ppo_pullcube_trains(ppo_run):
+    trainer, scalars, _ = ppo_run
     assert trainer.collected_frames == 400
     _check_logs(scalars, total=400, interval=200, episode_len=20, envs=2)
     assert "loss_objective" in scalars and "loss_critic" in scalars
+
+
+def test_trainer_policy_evaluates(ppo_run, tmp_path, capsys):
+    """A trainer run's ``policy.pt`` evaluated end to end: ``evaluate_gym.py --checkpoint <run>/policy.pt`` as a
+    user runs it (a subprocess from another folder; gym's AsyncVectorEnv of CPUGymWrapper) and its TorchRL
+    backend (in this process), on the same seeded episodes. The actor rebuilt from the config saved in the
+    file (the YAML's ``ppo_mlp`` with the run's overrides: 2x32 cells) acts as the trained one, bit for bit."""
+    trainer, _, run_dir = ppo_run
+    args = ["--checkpoint", str(run_dir / "policy.pt"), "--num-envs", "2", "--episodes", "2"]
+    args += ["--max-episode-steps", "6", "--seed", "4"]
+    gym_run = start([sys.executable, str(EXAMPLES / "evaluate_gym.py"), *args], tmp_path)
+    try:
+        ckpt = ppo_checkpoint.load_checkpoint(run_dir)  # the run folder: its policy.pt
+        assert ckpt["format"] == "maniskill_torchrl.trainer.v1" and ckpt["frames"] == 400
+        assert (ckpt["env_id"], ckpt["control_mode"], ckpt["obs_dim"], ckpt["act_dim"], ckpt["repeat"]) == (
+            "PullCube-v1",
+            "pd_ee_delta_pos",
+            35,
+            4,
+            1,
+        )
+        box = gym.spaces.Box
+        specs = ppo_checkpoint.specs_from_spaces(box(-float("inf"), float("inf"), (35,)), box(-1.0, 1.0, (4,)))
+        policy = ppo_checkpoint.policy_from_checkpoint(ckpt, specs)
+        assert [m.out_features for m in policy.modules() if isinstance(m, torch.nn.Linear)] == [32, 32, 4]
+        obs = TensorDict({"observation": torch.randn(5, 35)}, [5])
+        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+            mine, trained = policy(obs.clone())["action"], trainer.loss_module.actor_network(obs.clone())["action"]
+        assert torch.equal(mine, trained)
+        with pytest.raises(ppo_checkpoint.CheckpointError, match="observation size mismatch"):
+            ppo_checkpoint.policy_from_checkpoint(
+                ckpt, ppo_checkpoint.specs_from_spaces(box(-1, 1, (36,)), box(-1, 1, (4,)))
+            )
+
+        capsys.readouterr()
+        threads = torch.get_num_threads()
+        try:
+            code = evaluate_gym.main([*args, "--backend", "torchrl"])
+        finally:
+            torch.set_num_threads(threads)  # main sets one thread
+        torchrl_out = capsys.readouterr().out
+    finally:
+        gym_proc = gym_run.result()
+        gym_out = gym_proc.stdout
+    assert code == 0, torchrl_out
+    # ManiSkill's notes from gymnasium's worker processes (and its dummy env here) are quieted by the script
+    for note in ("CUDA device was not found", "No initial pose set"):
+        assert note not in gym_out + gym_proc.stderr, gym_proc.stderr
+    assert "PullCube-v1, control mode pd_ee_delta_pos, repeat 1, 400 frames" in gym_out, gym_out
+    assert len([line for line in gym_out.splitlines() if line.startswith("episode ")]) == 2, gym_out
+
+    def averages(text: str) -> dict[str, str]:
+        return dict(re.findall(r"^avg (\w+): (\S+)$", text, re.M))
+
+    assert "episodes: 2" in gym_out and "episodes: 2" in torchrl_out, torchrl_out
+    for key in ("success_once", "success_at_end", "return"):
+        assert averages(gym_out)[key] == averages(torchrl_out)[key], (key, gym_out, torchrl_out)
 
 
 def test_rlpd_pickcube_trains(tmp_path, monkeypatch, demo):
