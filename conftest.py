@@ -16,6 +16,8 @@ import os
 import tempfile
 import warnings
 
+import pytest
+
 try:
     from sybil import Sybil
     from sybil.parsers import markdown, myst
@@ -54,3 +56,15 @@ if Sybil is not None:
         name="docs",
     )
     pytest_collect_file = (_readme + _docs).pytest()
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    """A skipped doc block is reported at its line of its page (``README.md:142: <reason>``), not where pytest
+    turned Sybil's ``unittest.SkipTest`` into a skip (``_pytest/unittest.py``)."""
+    outcome = yield
+    report = outcome.get_result()
+    example = getattr(item, "example", None)
+    if example is not None and report.skipped and isinstance(report.longrepr, tuple):
+        reason = report.longrepr[2].removeprefix("Skipped: ")
+        report.longrepr = (os.path.relpath(example.path, item.config.rootpath), example.line, reason)

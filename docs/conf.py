@@ -166,7 +166,36 @@ def _skip_members_of_other_projects(app, what, name, obj, skip, options):
     return None
 
 
+def _fix_viewcode_backlinks(app, exception) -> None:
+    # viewcode keeps one module name per source page (the first documented object's: maniskill_torchrl for
+    # engines/cpu_vector.py, whose CPUVectorEnv is documented at the top level) and links each function's
+    # "[docs]" to <that name>.<function>: a function documented under its own module
+    # (maniskill_torchrl.engines.cpu_vector.in_process_default) gets an anchor that exists nowhere. Each such
+    # link is pointed at the object as documented.
+    import re
+    from pathlib import Path
+
+    if exception is not None or app.builder.format != "html":
+        return
+    objects = app.env.get_domain("py").objects
+    for page in Path(app.outdir, "_modules").rglob("*.html"):
+        modname = page.relative_to(Path(app.outdir, "_modules")).with_suffix("").as_posix().replace("/", ".")
+        html = page.read_text()
+
+        def fix(m: re.Match, modname: str = modname) -> str:
+            target = m.group(2)
+            name = target.rsplit(".", 1)[-1]
+            if target in objects or f"{modname}.{name}" not in objects:
+                return m.group(0)
+            return f"{m.group(1)}{modname}.{name}{m.group(3)}"
+
+        fixed = re.sub(r'(class="viewcode-back" href="[^"#]*#)([^"]+)(")', fix, html)
+        if fixed != html:
+            page.write_text(fixed)
+
+
 def setup(app):
+    app.connect("build-finished", _fix_viewcode_backlinks)
     app.config._maniskill_aliases = _aliases()
     app.connect("missing-reference", _missing_reference)
     app.connect("autodoc-process-signature", _init_signature)
