@@ -1,7 +1,10 @@
 """Learning curves of several runs side by side: the evaluations in each run's ``metrics.jsonl``
 (``examples/ppo_torchrl.py``, ``sac_torchrl.py``, ``bc_torchrl.py``), success_once and return
 against the run's own progress (frames, or iterations for BC) and against wall minutes, with each
-run's random-policy evaluation (where it has one) as a dashed line.
+run's random-policy evaluation (where it has one) dashed in its colour (``benchmarks/plot_style.py``:
+solid for what was measured, dashed for the baseline, dotted for a reference; the legend below the
+axes). ``--markers-only`` draws the evaluations as points (runs of a few evaluations); success axes
+run from 0 to 1, return axes from 0.
 
 Run::
 
@@ -15,6 +18,8 @@ import argparse
 import json
 import sys
 from pathlib import Path
+
+from benchmarks import plot_style
 
 
 def load(path: Path) -> tuple[list[dict], dict | None]:
@@ -35,8 +40,9 @@ def load(path: Path) -> tuple[list[dict], dict | None]:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("runs", nargs="+", help="label=path/to/metrics.jsonl")
-    p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--title", default="")
+    p.add_argument("--out", type=Path, required=True, help="the PNG to write")
+    p.add_argument("--title", default="", help="the figure's title")
+    p.add_argument("--markers-only", action="store_true", help="points, no lines between the evaluations")
     args = p.parse_args(argv)
 
     import matplotlib
@@ -44,31 +50,35 @@ def main(argv: list[str] | None = None) -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(2, 2, figsize=(11, 7))
+    fig, axes = plt.subplots(2, 2, figsize=(11, 7.4))
     for i, spec in enumerate(args.runs):
         label, _, path = spec.partition("=")
         evals, random = load(Path(path))
-        color = f"C{i}"
         progress = "frames" if "frames" in evals[0] else "iteration"
+        style = plot_style.measured(i, marker="osD^"[i % 4])
+        if args.markers_only:
+            style.update(ls="none", ms=7)
         for row, key in enumerate(("success_once", "return")):
             if key not in evals[0]:
                 continue
             ys = [e[key] for e in evals]
-            axes[row, 0].plot([e[progress] for e in evals], ys, "o-", color=color, label=f"{label} ({progress})")
-            axes[row, 1].plot([e["wall_s"] / 60 for e in evals], ys, "o-", color=color, label=label)
+            axes[row, 0].plot([e[progress] for e in evals], ys, **style, label=label)
+            axes[row, 1].plot([e["wall_s"] / 60 for e in evals], ys, **style)
             if random is not None and key in random:
                 for ax in axes[row]:
-                    ax.axhline(random[key], color=color, ls="--", lw=1)
+                    ax.axhline(random[key], **plot_style.baseline(i), label=f"{label}: random policy")
     for row, key in enumerate(("success_once", "return")):
         axes[row, 0].set_ylabel(key)
         axes[row, 0].set_xlabel("frames (RL) or iterations (BC)")
         axes[row, 1].set_xlabel("wall minutes (training and evaluation)")
+    for ax in axes[0]:
+        ax.set_ylim(0, 1.02)
+    for ax in axes[1]:
+        ax.set_ylim(bottom=0)
     for ax in axes.flat:
         ax.grid(alpha=0.3)
-    axes[0, 0].legend(fontsize=8)
-    axes[0, 1].legend(fontsize=8)
-    fig.suptitle(f"{args.title} (dashed: random policy)".strip())
-    fig.tight_layout()
+    fig.suptitle(args.title)  # the legend names the random policy's dashed lines
+    plot_style.legend_below(fig, list(axes.flat))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out, dpi=90)
     print(args.out)

@@ -279,9 +279,8 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
         eval_steps = -(-_time_limit(args) // args.repeat)  # ceil: a last partial repeat still counts
 
         def log_eval(frames: int, train_s: float, which: str, acting: Any) -> dict[str, float]:
-            rec = evaluate_and_log(
-                eval_env, acting, args, eval_steps, log_path, start, which, frames, train_s=round(train_s, 1)
-            )
+            extra = {"train_s": round(train_s, 1), "env_id": args.env_id}  # the task: benchmarks.plot_ppo's title
+            rec = evaluate_and_log(eval_env, acting, args, eval_steps, log_path, start, which, frames, **extra)
             return {k: rec[k] for k in ("episodes", "success_once", "success_at_end", "return") if k in rec}
 
         log_eval(0, 0.0, "random", None)

@@ -84,7 +84,7 @@ def draw_ppo(out: Path, tmp: Path) -> Path:
     log = _write_jsonl([{**r, "episodes": RL_EVAL_EPISODES} for r in rows], tmp / "ppo.jsonl")
     png = out / "ppo_pullcube.png"
     title = "PPO on PullCube-v1 (pd_ee_delta_pos), CPU sim, 2 cores, 2026-11-23"
-    fig = _quiet(plot_ppo.main, [str(log), "--out", str(png), "--title", title])
+    fig = _quiet(plot_ppo.main, [str(log), "--out", str(png), "--title", title, "--target", "0.8"])
     # plot_ppo's wall-minutes axis puts a tick past the run's end (its interpolation stops at the
     # last evaluation, so 35 lands on 30); frames as 50k, not 50000, so that the labels do not touch.
     last_min = rows[-1]["wall_s"] / 60
@@ -116,10 +116,22 @@ def _draw_rl_runs(out: Path, tmp: Path, png_name: str, runs: list[tuple[str, str
     return fig
 
 
+def _relegend(fig) -> None:
+    """The legend below the axes again, with the lines added after the plot script drew it."""
+    from benchmarks import plot_style
+
+    for legend in list(fig.legends):
+        legend.remove()
+    plot_style.legend_below(fig, fig.axes)
+
+
 def _target(fig, level: float = 0.8) -> None:
-    """The issue's success_once target, dotted, on both success axes."""
+    """The success_once target, dotted (a reference level), on both success axes."""
+    from benchmarks import plot_style
+
     for ax in fig.axes[:2]:
-        ax.axhline(level, color="grey", ls=":", lw=1)
+        ax.axhline(level, **plot_style.reference(), label=f"target success {level:g}")
+    _relegend(fig)
 
 
 def draw_sac(out: Path, tmp: Path) -> Path:
@@ -140,13 +152,14 @@ def draw_ppo_trainer(out: Path, tmp: Path) -> Path:
 
 
 def draw_rlpd(out: Path, tmp: Path) -> Path:
+    from benchmarks import plot_style
+
     runs = [("TorchRL's OfflineToOnlineTrainer", "rlpd/pickcube_offline_to_online")]
     title = "RLPD on PickCube-v1 (sparse reward, 200 demos), CPU sim, 2 cores"
     fig = _draw_rl_runs(out, tmp, "rlpd_pickcube.png", runs, title)
-    _target(fig)
     # ManiSkill's RLPD README: PickCube-v1 in "around 50K" env samples with its sample-efficient config
     # (UTD 16, 10 critics, 1000 RL demos); this run is its walltime config's (UTD 0.5, 200k frames).
-    fig.axes[0].axvline(50_000, color="grey", ls="--", lw=1)
+    fig.axes[0].axvline(50_000, **plot_style.reference(), label="ManiSkill's ~50k frames (another config)")
     fig.axes[0].annotate(
         "ManiSkill's ~50k\n(sample-efficient config)",
         (50_000, 0.5),
@@ -154,7 +167,8 @@ def draw_rlpd(out: Path, tmp: Path) -> Path:
         textcoords="offset points",
         fontsize=8,
     )
-    fig.suptitle(f"{title}: every 10,000 frames; dotted: the 0.8 target")
+    _target(fig)
+    fig.suptitle(f"{title}: an evaluation every 10,000 frames")
     fig.savefig(out / "rlpd_pickcube.png", dpi=90)
     return out / "rlpd_pickcube.png"
 
@@ -169,19 +183,35 @@ def draw_bc(out: Path, tmp: Path) -> Path:
         runs.append(f"{task}={_write_jsonl(records, tmp / f'bc_{task}.jsonl')}")
     png = out / "bc.png"
     title = "Behaviour cloning (MLP, 1000 demos), CPU sim, 2 cores, 2026-11-25"
-    fig = _quiet(plot_runs.main, [*runs, "--out", str(png), "--title", title])
-    # plot_runs labels its axes for RL and BC runs together, and its title names a random-policy
-    # line that BC's logs do not have; the two runs' wall clocks start at different points.
+    fig = _quiet(plot_runs.main, [*runs, "--out", str(png), "--title", title, "--markers-only"])
+    # plot_runs labels its axes for RL and BC runs together; the two runs' wall clocks start at different
+    # points. Two evaluations per run: points, not lines through them.
     episodes = rows[0]["episodes"]
     fig.suptitle(f"{title}: an evaluation every 2500 iterations")
     for ax in fig.axes[0::2]:
         ax.set_xlabel("iterations (gradient steps)")
+        ax.set_xlim(0, max(r["iteration"] for r in rows) * 1.06)
     for ax in fig.axes[1::2]:
         ax.set_xlabel("wall minutes (PushCube-v1's include making the demos)")
+        ax.set_xlim(0, max(r["wall_s"] for r in rows) / 60 * 1.06)
     fig.axes[0].set_ylabel(f"success_once ({episodes} seeded episodes)")
     fig.axes[2].set_ylabel("episode return (deterministic policy)")
     fig.savefig(png, dpi=90)
     return png
+
+
+# The legend's names of the benchmark's pipelines (their ids in the CSVs, as ``bench_collection`` and
+# ``bench_many_cores`` name them); each caption of docs/curves.md explains them and gives the ids.
+LABELS = {
+    "gym": "ManiSkill's gym path (AsyncVectorEnv of CPUGymWrapper)",
+    "gym:t1": "ManiSkill's gym path, one torch thread per process",
+    "gym-nograd": "ManiSkill's gym path, its sleeps without the grad-mode factor",
+    "batched:t1,rp,dev,em": "README pipeline (Collector over ManiSkillEnv)",
+    "batched:t1,rp,dev,em,workers": "README pipeline, every sub-env in a worker process",
+    "readme": "README pipeline (Collector over ManiSkillEnv, lockstep)",
+    "async:auto": "TorchRL's AsyncBatchedCollector over single envs",
+    "async": "asynchronous pool (ManiSkillAsyncEnvPool + AsyncPoolCollector)",
+}
 
 
 def draw_collection(csv_path: Path, png: Path, title: str, error_bars: bool) -> Path:
@@ -192,10 +222,12 @@ def draw_collection(csv_path: Path, png: Path, title: str, error_bars: bool) -> 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from benchmarks import plot_style
+
     rows = read_csv(csv_path)
     pipelines = list(dict.fromkeys(r["pipeline"] for r in rows))
     ns = sorted({r["n"] for r in rows})
-    fig, ax = plt.subplots(figsize=(8, 5))
+    fig, ax = plt.subplots(figsize=(8.5, 6))
     # a small sideways shift per pipeline, so that points and bars at the same N do not hide each other
     shift = 0.012 * (ns[-1] - ns[0] or 1)
     notes = []
@@ -203,14 +235,14 @@ def draw_collection(csv_path: Path, png: Path, title: str, error_bars: bool) -> 
         mine = sorted((r for r in rows if r["pipeline"] == name), key=lambda r: r["n"])
         xs = [r["n"] + (i - (len(pipelines) - 1) / 2) * shift for r in mine]
         ys = [r["frames_per_s"] for r in mine]
-        style = dict(color=f"C{i}", marker="os^D"[i % 4], ms=6, lw=2 if name.startswith("batched") else 1.3)
-        if name.startswith("gym"):
-            style["ls"] = "--"
+        marker = "os^D"[i % 4]
+        style = plot_style.baseline(i, marker) if name.startswith("gym") else plot_style.measured(i, marker)
+        label = LABELS.get(name, mine[0]["label"])
         if error_bars:
             err = [[r["frames_per_s"] - r["min"] for r in mine], [r["max"] - r["frames_per_s"] for r in mine]]
-            ax.errorbar(xs, ys, yerr=err, capsize=4, label=mine[0]["label"], **style)
+            ax.errorbar(xs, ys, yerr=err, capsize=4, label=label, **style)
         else:
-            ax.plot(xs, ys, label=mine[0]["label"], **style)
+            ax.plot(xs, ys, label=label, **style)
         notes += [(x, r, f"C{i}") for x, r in zip(xs, mine) if r.get("ratio_to_gym") is not None]
     # The table's ratios beside their points: left of the first N, right of the others; at one N,
     # the highest point's above and the next ones lower down, so that close points' notes do not overlap.
@@ -223,23 +255,27 @@ def draw_collection(csv_path: Path, png: Path, title: str, error_bars: bool) -> 
                 (x, r["frames_per_s"]),
                 textcoords="offset points",
                 xytext=(-10 if first else 10, 8 - 14 * rank),
-                fontsize=8,
+                fontsize=9,
                 color=color,
                 ha="right" if first else "left",
                 va="center",
                 bbox=dict(fc="white", ec="none", alpha=0.8, pad=0.5),
             )
     gym1 = next(r["frames_per_s"] for r in rows if r["pipeline"] == "gym" and r["n"] == ns[0])
-    ax.plot(ns, [n * gym1 / ns[0] for n in ns], ":", color="gray", lw=1, label="N x gym's N=1 rate (perfect scaling)")
+    ax.plot(
+        ns,
+        [n * gym1 / ns[0] for n in ns],
+        **plot_style.reference(),
+        label="N times gym's rate at N=1 (perfect scaling)",
+    )
     ax.set_xticks(ns)
     ax.set_xlim(ns[0] - 0.12 * (ns[-1] - ns[0]), ns[-1] + 0.12 * (ns[-1] - ns[0]))
     ax.set_xlabel("N (sub-envs, one process each)")
     ax.set_ylabel("frames/s (agent steps per second)")
     ax.set_ylim(bottom=0)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="upper left")
-    ax.set_title(title, fontsize=10)
-    fig.tight_layout()
+    ax.set_title(title, fontsize=11)
+    plot_style.legend_below(fig, [ax], ncol=1)
     fig.savefig(png, dpi=100)
     plt.close(fig)
     return png
@@ -253,25 +289,25 @@ def draw_many_cores(csv_path: Path, png: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from benchmarks import plot_style
+
     rows = read_csv(csv_path)
     meta = [line[2:] for line in csv_path.read_text().splitlines() if line.startswith("# ")]
     date = next((m.split("date ")[1].split(".")[0] for m in meta if "date " in m), "")
-    emulated = next((m.split("Emulated: ")[1].rstrip(".") for m in meta if "Emulated: " in m), "")
     pipelines = list(dict.fromkeys(r["pipeline"] for r in rows))
     ns = sorted({r["n"] for r in rows})
-    fig, (left, right) = plt.subplots(1, 2, figsize=(11, 5.4))
+    fig, (left, right) = plt.subplots(1, 2, figsize=(12, 6.4))
     ideal = {r["n"]: r["ideal_frames_per_s"] for r in rows}
-    left.plot(ns, [ideal[n] for n in ns], ":", color="black", lw=1.2, label="emulated ideal (N envs that never wait)")
-    right.axhline(100, ls=":", color="black", lw=1.2)
+    left.plot(ns, [ideal[n] for n in ns], **plot_style.reference(), label="emulated ideal (N envs that never wait)")
+    right.axhline(100, **plot_style.reference())
     for i, name in enumerate(pipelines):
         mine = sorted((r for r in rows if r["pipeline"] == name), key=lambda r: r["n"])
         xs = [r["n"] * (1 + 0.03 * (i - (len(pipelines) - 1) / 2)) for r in mine]
-        gym = name.startswith("gym")  # gym, and gym-nograd (its sleeps without the grad-mode factor)
-        style = dict(color=f"C{i}", marker="os^D"[i % 4], ms=6, lw=1.3 if gym else 2)
-        if gym:
-            style["ls"] = "--"
+        marker = "os^D"[i % 4]  # gym, and gym-nograd (its sleeps without the grad-mode factor): the baselines
+        style = plot_style.baseline(i, marker) if name.startswith("gym") else plot_style.measured(i, marker)
         err = [[r["frames_per_s"] - r["min"] for r in mine], [r["max"] - r["frames_per_s"] for r in mine]]
-        left.errorbar(xs, [r["frames_per_s"] for r in mine], yerr=err, capsize=3, label=mine[0]["label"], **style)
+        label = LABELS.get(name, mine[0]["label"])
+        left.errorbar(xs, [r["frames_per_s"] for r in mine], yerr=err, capsize=3, label=label, **style)
         right.plot(xs, [100 * r["share"] for r in mine], **style)
         for x, r in zip(xs, mine):
             if r.get("ratio_to_gym") is not None and r["n"] in (ns[-1], 15):
@@ -280,7 +316,7 @@ def draw_many_cores(csv_path: Path, png: Path) -> Path:
                     (x, 100 * r["share"]),
                     textcoords="offset points",
                     xytext=(6, 4),
-                    fontsize=7,
+                    fontsize=9,
                     color=f"C{i}",
                 )
     for ax in (left, right):
@@ -288,22 +324,23 @@ def draw_many_cores(csv_path: Path, png: Path) -> Path:
         ax.set_xlim(ns[0] / 1.3, ns[-1] * 1.7)
         ax.set_xticks(ns)
         ax.set_xticklabels([str(n) for n in ns])
-        ax.set_xlabel("N (sub-envs, one process each)")
+        ax.set_xlabel("N (sub-envs, one process each)", fontsize=10)
+        ax.tick_params(labelsize=9)
         ax.grid(alpha=0.3)
     from matplotlib.ticker import FuncFormatter
 
     left.set_yscale("log")
     left.yaxis.set_major_formatter(FuncFormatter(lambda y, _: f"{y:,.0f}"))
     left.yaxis.set_minor_formatter(FuncFormatter(lambda y, _: ""))
-    left.set_ylabel("frames/s (agent steps per second, log scale)")
-    right.set_ylabel("share of the emulated ideal (%)")
+    left.set_ylabel("frames/s (agent steps per second, log scale)", fontsize=10)
+    right.set_ylabel("share of the emulated ideal (%)", fontsize=10)
     right.set_ylim(0, 110)
-    handles, labels = left.get_legend_handles_labels()
-    fig.legend(handles, labels, loc="lower center", ncol=2, fontsize=8, frameon=False)
     fig.suptitle(
-        f"Collection on the many-core emulator (PickCube-v1 replayed), on 2 cores, {date}\n{emulated}", fontsize=9
+        f"Collection on many cores, emulated on 2 cores ({date}): PickCube-v1 replayed,\n"
+        "each step sleeping its time on the lent H200 machine, action repeat 2",
+        fontsize=12,
     )
-    fig.tight_layout(rect=(0, 0.1, 1, 1))
+    plot_style.legend_below(fig, [left], ncol=2, fontsize=10)
     fig.savefig(png, dpi=100)
     plt.close(fig)
     return png
@@ -330,8 +367,8 @@ def draw_all(out_dir: Path) -> list[Path]:
         draw_collection(
             data / "sweep_2cores.csv",
             out_dir / "collection_2cores.png",
-            "Collection, PickCube-v1 state, 2 cores (AMD EPYC, CPU sim), 2026-11-26\n"
-            "median of 5 rounds x 10 s, bars: min-max",
+            "Collection of PickCube-v1 (state, CPU sim) on 2 cores, 2026-11-26:\n"
+            "the median of 5 rounds of 10 s, bars from the slowest round to the fastest",
             error_bars=True,
         )
     )
@@ -339,8 +376,8 @@ def draw_all(out_dir: Path) -> list[Path]:
         draw_collection(
             data / "sweep_16cores_h200.csv",
             out_dir / "collection_16cores.png",
-            "Collection, PickCube-v1 state, 16 cores (lent H200 machine, CPU sim), 2026-11-27\n"
-            "one round of 2 s: a first look, not a median",
+            "Collection of PickCube-v1 (state, CPU sim) on the 16 cores of a lent H200 machine, 2026-11-27:\n"
+            "one round of 2 s per point, a first look rather than a median",
             error_bars=False,
         )
     )

@@ -71,3 +71,82 @@ def test_many_cores_csv_reads(curves):
     for r in rows:
         assert isinstance(r["frames_per_s"], int) and r["ideal_frames_per_s"] > r["frames_per_s"] > 0
         assert abs(r["share"] - r["frames_per_s"] / r["ideal_frames_per_s"]) < 0.01 * r["share"] + 0.001
+
+
+def test_collection_legends_in_words_explained_by_the_captions(curves):
+    """Every pipeline of the collection figures has a legend name in words (not its benchmark id), and the
+    page's captions give both the name and the id."""
+    page = (ROOT / "docs" / "curves.md").read_text()
+    captions = " ".join(page.split())
+    for name in ("sweep_2cores.csv", "sweep_16cores_h200.csv", "many_cores_emulated.csv"):
+        for pipeline in {r["pipeline"] for r in curves.read_csv(ROOT / "benchmarks" / "collection" / name)}:
+            label = curves.LABELS[pipeline]
+            assert ":" not in label.split("(")[0], label
+            assert f"`{pipeline}`" in captions or f"`{pipeline}:" in captions, f"no caption gives {pipeline}"
+            words = label.split(" (")[0].split(",")[0]
+            assert words in captions, f"no caption explains {label!r}"
+
+
+def _log(tmp_path, records) -> Path:
+    import json
+
+    path = tmp_path / "metrics.jsonl"
+    path.write_text("".join(json.dumps(r) + "\n" for r in records))
+    return path
+
+
+_KEYS = ("eval", "frames", "wall_s", "episodes", "success_once", "success_at_end", "return")
+RUN = [
+    dict(zip(_KEYS, values))
+    for values in (
+        ("random", 0, 5.0, 4, 0.0, 0.0, 1.0),
+        ("policy", 100, 60.0, 4, 0.5, 0.25, 3.0),
+        ("policy", 200, 120.0, 4, 1.0, 0.75, 5.0),
+    )
+]
+
+
+def test_plot_ppo_target_only_when_given_and_titled_with_the_task(tmp_path):
+    """``benchmarks.plot_ppo``: a target line only with ``--target``, the title "PPO on <task>", one legend
+    below the axes (none on them), the random policy dashed, success from 0."""
+    pytest.importorskip("matplotlib")
+    import matplotlib.pyplot as plt
+
+    from benchmarks import plot_ppo
+
+    log = _log(tmp_path, RUN)
+    for argv, target, title in (
+        ([], None, f"PPO ({log})"),
+        (["--task", "PullCube-v1", "--target", "0.7"], 0.7, "PPO on PullCube-v1"),
+    ):
+        plot_ppo.main([str(log), "--out", str(tmp_path / "ppo.png"), *argv])
+        fig = plt.gcf()
+        ax = fig.axes[0]
+        levels = {line.get_ydata()[0]: line.get_linestyle() for line in ax.lines if len(set(line.get_ydata())) == 1}
+        assert levels.get(0.0) == "--"  # the random policy, dashed
+        assert (target in levels) is (target is not None) and levels.get(target, ":") == ":"
+        assert 0.8 not in levels
+        assert fig._suptitle.get_text() == title
+        assert len(fig.legends) == 1 and all(a.get_legend() is None for a in fig.axes)
+        assert ax.get_ylim()[0] == 0
+        plt.close("all")
+    with_task = _log(tmp_path, [{**r, "env_id": "PushCube-v1"} for r in RUN])
+    plot_ppo.main([str(with_task), "--out", str(tmp_path / "ppo.png")])
+    assert plt.gcf()._suptitle.get_text() == "PPO on PushCube-v1"
+    plt.close("all")
+
+
+def test_plot_runs_markers_only_from_zero(tmp_path):
+    pytest.importorskip("matplotlib")
+    import matplotlib.pyplot as plt
+
+    from benchmarks import plot_runs
+
+    log = _log(tmp_path, RUN)
+    plot_runs.main([f"a={log}", "--out", str(tmp_path / "runs.png"), "--markers-only"])
+    fig = plt.gcf()
+    measured = [line for ax in fig.axes for line in ax.lines if len(set(line.get_ydata())) > 1]
+    assert measured and all(line.get_linestyle() == "None" and line.get_marker() for line in measured)
+    assert all(ax.get_ylim()[0] == 0 for ax in fig.axes)
+    assert len(fig.legends) == 1 and all(a.get_legend() is None for a in fig.axes)
+    plt.close("all")
