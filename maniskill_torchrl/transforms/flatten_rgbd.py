@@ -43,6 +43,9 @@ class FlattenRGBD(Transform):
     Keyword Args:
         state_keys (sequence of NestedKey): the observation entries flattened into ``"state"``, in order.
             Defaults to ManiSkill's ``("agent", "extra")``.
+        state_key (NestedKey): where the flattened state goes. Defaults to ``"state"``. With ``rgb=False,
+            depth=False, state_key="observation"`` on an ``obs_mode="state_dict"`` env, this is ManiSkill's
+            ``FlattenObservationWrapper`` (the vector ``obs_mode="state"`` gives).
 
     Examples:
         >>> from torchrl.envs import TransformedEnv
@@ -63,11 +66,12 @@ class FlattenRGBD(Transform):
         sep_depth: bool = True,
         *,
         state_keys: Sequence[NestedKey] = ("agent", "extra"),
+        state_key: NestedKey = "state",
     ) -> None:
         images = ["rgbd"] if rgb and depth and not sep_depth else ["rgb"] * rgb + ["depth"] * depth
-        super().__init__(in_keys=[self.SENSOR_DATA, *state_keys], out_keys=images + ["state"] * state)
+        super().__init__(in_keys=[self.SENSOR_DATA, *state_keys], out_keys=images + [state_key] * state)
         self.rgb, self.depth, self.state, self.sep_depth = rgb, depth, state, sep_depth
-        self.state_keys = tuple(state_keys)
+        self.state_keys, self.state_key = tuple(state_keys), state_key
         self._leaves: list | None = None  # the state's leaves in order, from the spec (once)
 
     # ------------------------------------------------------------------ the rule, on data and specs alike
@@ -106,15 +110,15 @@ class FlattenRGBD(Transform):
 
     # ------------------------------------------------------------------ data
     def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
-        cameras = next_tensordict.get(self.SENSOR_DATA)
-        out = {}
+        cameras = next_tensordict.get(self.SENSOR_DATA, None)
+        images = self._images(cameras) if cameras is not None else {}
         # rgbd: every camera's rgb, then every camera's depth, as ManiSkill's two concatenations give
-        out = {kind: torch.cat(images, -1) for kind, images in self._images(cameras).items()}
+        out = {kind: torch.cat(parts, -1) for kind, parts in images.items()}
         if self.state:
             leaves = self._leaves if self._leaves is not None else self._state_leaves(next_tensordict)
             batch_dims = next_tensordict.batch_dims
             columns = [self._columns(next_tensordict.get(key), batch_dims) for key in leaves]
-            out["state"] = torch.cat(columns, -1)
+            out[self.state_key] = torch.cat(columns, -1)
         next_tensordict = next_tensordict.exclude(self.SENSOR_DATA, self.SENSOR_PARAM, *self.state_keys)
         next_tensordict.update(out)
         return next_tensordict
@@ -132,15 +136,15 @@ class FlattenRGBD(Transform):
 
     # ------------------------------------------------------------------ specs
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
-        if self.SENSOR_DATA not in observation_spec.keys():
+        if self.SENSOR_DATA not in observation_spec.keys() and (self.rgb or self.depth):
             raise KeyError(
                 "FlattenRGBD needs camera observations: make the env with obs_mode='rgb', 'depth' or 'rgbd' "
                 f"(this one has {sorted(observation_spec.keys())})."
             )
-        cameras = observation_spec[self.SENSOR_DATA]
+        cameras = observation_spec.get(self.SENSOR_DATA, None)
         batch = observation_spec.shape
         new: dict[str, TensorSpec] = {}
-        for kind, specs in self._images(cameras).items():
+        for kind, specs in (self._images(cameras) if cameras is not None else {}).items():
             low = torch.cat([s.space.low for s in specs], -1)  # promoted as the data is (rgbd: int16)
             high = torch.cat([s.space.high for s in specs], -1)
             new[kind] = Bounded(low, high, shape=low.shape, dtype=low.dtype, device=specs[0].device)
@@ -148,7 +152,7 @@ class FlattenRGBD(Transform):
             self._leaves = self._state_leaves(observation_spec)
             specs = [observation_spec[key] for key in self._leaves]
             width = sum(1 if s.ndim == len(batch) else s.shape[-1] for s in specs)
-            new["state"] = Unbounded(
+            new[self.state_key] = Unbounded(
                 shape=(*batch, width), dtype=_promoted([s.dtype for s in specs]), device=observation_spec.device
             )
         for key in (self.SENSOR_DATA, self.SENSOR_PARAM, *self.state_keys):

@@ -5,14 +5,13 @@ from __future__ import annotations
 
 import pytest
 import torch
-from mani_skill.utils.wrappers import FlattenRGBDObservationWrapper
+from mani_skill.utils.wrappers import FlattenObservationWrapper, FlattenRGBDObservationWrapper
 from torchrl.envs import TransformedEnv, check_env_specs
 
 from maniskill_torchrl import ManiSkillEnv
 from maniskill_torchrl.transforms import CPUUnbatch, FlattenRGBD
 from support.helpers import close_envs, make_gym_env
 
-pytestmark = pytest.mark.pictures  # every env here renders its cameras
 EPISODE = 3
 
 
@@ -32,6 +31,7 @@ def _same(ref_obs: dict, td, what: str) -> None:
         assert td[key].dtype == value.dtype and torch.equal(td[key], value), f"{what}: {key!r} differs"
 
 
+@pytest.mark.pictures  # renders its cameras
 @pytest.mark.parametrize(
     "task,mode,options",
     [
@@ -63,6 +63,7 @@ def test_the_observations_and_specs_are_maniskills(task, mode, options):
         close_envs([ref, env])
 
 
+@pytest.mark.pictures  # renders its cameras
 def test_a_batched_cpu_env_with_partial_resets_is_each_envs_wrapper():
     """ManiSkillEnv(num_envs=2) through TorchRL's auto-reset (partial resets, episodes of different lengths):
     each env's stacked data is ManiSkill's wrapper over a lone env with that env's seeds and actions."""
@@ -93,6 +94,7 @@ def test_a_batched_cpu_env_with_partial_resets_is_each_envs_wrapper():
         close_envs([env, *refs])
 
 
+@pytest.mark.pictures  # renders its cameras
 def test_check_env_specs_after_cpu_unbatch_and_on_stored_data():
     env = TransformedEnv(ManiSkillEnv("PushCube-v1", obs_mode="rgbd", sim_backend="cpu"), CPUUnbatch())
     env.append_transform(FlattenRGBD())
@@ -123,3 +125,39 @@ def test_an_env_without_cameras_says_which_obs_mode_to_use():
             _ = env.observation_spec
     finally:
         env.close()
+
+
+@pytest.mark.parametrize("task", ["PushCube-v1", "PickCube-v1"])
+def test_state_only_is_maniskills_flattened_state(task):
+    """rgb=False, depth=False, state_key="observation" on a state_dict env: ManiSkill's flattened state (what
+    obs_mode="state" gives, BaseEnv's own flatten_state_dict), its spec, at reset and steps; a bool entry
+    (PickCube-v1's is_grasped) promoted as ManiSkill promotes it. ManiSkill 3.0.1's FlattenObservationWrapper
+    fails to build (its flatten_state_dict on numpy data: AttributeError); where it builds, it is checked too."""
+    try:
+        wrapped = FlattenObservationWrapper(make_gym_env(task, obs_mode="state_dict", max_episode_steps=EPISODE))
+    except AttributeError:
+        wrapped = None
+    ref = make_gym_env(task, obs_mode="state", max_episode_steps=EPISODE)
+    env = TransformedEnv(
+        ManiSkillEnv(task, obs_mode="state_dict", sim_backend="cpu", max_episode_steps=EPISODE),
+        FlattenRGBD(rgb=False, depth=False, state_key="observation"),
+    )
+    try:
+        check_env_specs(env)
+        obs, _ = ref.reset(seed=6)
+        env.set_seed(6)
+        td = env.reset()
+        spec = env.observation_spec["observation"]
+        assert spec.shape == obs.shape and spec.dtype == obs.dtype
+        assert td["observation"].dtype == obs.dtype and torch.equal(td["observation"], obs)
+        if wrapped is not None:
+            assert torch.equal(wrapped.reset(seed=6)[0], obs)
+        for t in range(EPISODE):
+            action = torch.full((1, 8), 0.25 * (t - 1))
+            obs, *_ = ref.step(action)
+            td = env.step(td.set("action", action))["next"]
+            assert torch.equal(td["observation"], obs), f"step {t}"
+            if wrapped is not None:
+                assert torch.equal(wrapped.step(action)[0], obs), f"step {t}"
+    finally:
+        close_envs([e for e in (ref, env, wrapped) if e is not None])
