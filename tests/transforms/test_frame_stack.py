@@ -9,7 +9,7 @@ from __future__ import annotations
 import pytest
 import torch
 from mani_skill.utils.wrappers import FlattenRGBDObservationWrapper, FrameStack
-from torchrl.envs import CatFrames, Compose, TransformedEnv, UnsqueezeTransform, check_env_specs
+from torchrl.envs import CatFrames, Compose, TransformedEnv, UnsqueezeTransform
 
 from maniskill_torchrl import ManiSkillEnv
 from maniskill_torchrl.transforms import FlattenRGBD
@@ -64,7 +64,6 @@ def test_partial_resets_stack_each_env_as_a_lone_frame_stack():
     )
     ref = FrameStack(make_gym_env("PickCube-v1", obs_mode="state", max_episode_steps=10), K)
     try:
-        check_env_specs(env)
         env.set_seed(3)
         td = env.reset()
         obs = ref.reset(seed=3 + 1)[0]  # env 1's first seed
