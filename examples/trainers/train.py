@@ -52,20 +52,6 @@ def _repeat(env_cfg) -> int:
     return int(repeat)
 
 
-def _render_where_possible(cfg) -> None:
-    """Without a CUDA device to render with, the envs' ``render_backend: gpu`` (ManiSkill's default, which the
-    config fills in) becomes ``cpu``: ManiSkill would fall back to the CPU anyway, after warning so in every
-    worker process, where this script's filters do not reach (the library's own rule for a caller that names
-    no render device). A machine with CUDA keeps the config's value."""
-    from maniskill_torchrl._internal.rendering import _no_cuda_render_device
-
-    envs = [cfg[name].base_env for name in ("training_env", "eval_env") if "base_env" in cfg.get(name, {})]
-    if envs and _no_cuda_render_device():
-        for env in envs:
-            if env.get("render_backend") == "gpu":
-                env.render_backend = "cpu"
-
-
 @hydra.main(config_path="config", config_name="sac_pushcube", version_base="1.3")
 def main(cfg):
     from hydra.core.hydra_config import HydraConfig
@@ -73,7 +59,6 @@ def main(cfg):
     from maniskill_torchrl._internal.rendering import quiet_maniskill
 
     quiet_maniskill()  # ManiSkill's notes that say nothing actionable here (no CUDA to render with, task builders')
-    _render_where_possible(cfg)
     out = Path(HydraConfig.get().runtime.output_dir)
     print(f"output folder: {out}", flush=True)
     trainer = hydra.utils.instantiate(cfg.trainer)
