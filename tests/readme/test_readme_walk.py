@@ -168,5 +168,11 @@ def test_training_commands(newcomer, cmd):
         assert "output folder: " in proc.stdout
         out = Path(proc.stdout.split("output folder: ")[1].splitlines()[0])
         assert (out / "policy.pt").is_file() and folder in out.parents
+        # the command its last line prints: the run's policy, evaluated through ManiSkill's gym path
+        assert f"evaluate it: python examples/evaluate_gym.py --checkpoint {out / 'policy.pt'}" in proc.stdout
+        evaluated = run(
+            newcomer, f"python examples/evaluate_gym.py --checkpoint {out} --episodes 2 --max-episode-steps 5"
+        )
+        assert "episodes: 2" in evaluated.stdout and "avg success_once" in evaluated.stdout, evaluated.stdout
     if "evaluate_gym" in cmd:
         assert "success" in proc.stdout
