@@ -654,6 +654,8 @@ class ManiSkillWrapper(_EnvWrapper):
         self.full_action_spec = action_spec
         self.reward_spec = reward_spec
         self.full_done_spec = done_spec
+        # env.action_key, read once: the property costs a microsecond a step.
+        self._action_key = self.action_key if self._action_names is None else None
 
     def _infos(self, base: Any) -> dict[str, Any]:
         # From get_info(): a probe step or reset would change later seeded resets.
@@ -814,7 +816,7 @@ class ManiSkillWrapper(_EnvWrapper):
     def _sim_action(self, tensordict: TensorDictBase) -> Any:
         """Returns the step's action as ManiSkill takes it, its shape checked."""
         if self._action_names is None:
-            action = tensordict[self.action_key]  # a KeyError names the entries there
+            action = tensordict[self._action_key]  # a KeyError names the entries
             if action.shape != self._action_shapes:
                 raise ValueError(
                     f"ManiSkill action of shape {tuple(action.shape)}, expected "
