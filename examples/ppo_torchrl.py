@@ -55,7 +55,7 @@ from typing import Any
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import AddStateIndependentNormalScale, TensorDictModule
+from tensordict.nn import AddStateIndependentNormalScale, TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, ReplayBuffer
@@ -97,6 +97,12 @@ def make_cpu_env(env_id: str, repeat: int, env_kwargs: dict[str, Any]) -> EnvBas
 
 def _env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     env_kwargs: dict[str, Any] = {"obs_mode": "state", "control_mode": args.control_mode}
+    if args.obs == "rgb":
+        # ManiSkill's PPO-from-rgb baseline: its cameras' rgb (no depth) beside the flattened state
+        # (FlattenRGBDObservationWrapper(rgb=True, depth=False, state=...)), at --image-size pixels.
+        size = {"width": args.image_size, "height": args.image_size}
+        env_kwargs.update(obs_mode="rgb", sensor_configs=size)
+        env_kwargs["flatten_rgbd"] = {"rgb": True, "depth": False, "state": args.include_state}
     if args.max_episode_steps is not None:
         env_kwargs["max_episode_steps"] = args.max_episode_steps
     return env_kwargs
@@ -134,24 +140,83 @@ def _time_limit(args: argparse.Namespace) -> int:
 
 
 # --------------------------------------------------------------------------- models
+class NatureCNN(nn.Module):
+    """ManiSkill's PPO-from-rgb encoder (``ppo_rgb.py``'s ``NatureCNN``): three convolutions and a 256-unit
+    layer over the rgb images (``[*batch, H, W, C]`` uint8, scaled to [0, 1]), a 256-unit linear layer over the
+    state where there is one, the two concatenated."""
+
+    def __init__(self, rgb_shape: torch.Size, state_dim: int | None, device: torch.device) -> None:
+        super().__init__()
+        channels = rgb_shape[-1]
+        self.cnn = nn.Sequential(
+            nn.Conv2d(channels, 32, kernel_size=8, stride=4),
+            nn.ReLU(),
+            nn.Conv2d(32, 64, kernel_size=4, stride=2),
+            nn.ReLU(),
+            nn.Conv2d(64, 64, kernel_size=3, stride=1),
+            nn.ReLU(),
+            nn.Flatten(),
+        ).to(device)
+        with torch.no_grad():
+            flat = self.cnn(torch.zeros(1, channels, *rgb_shape[-3:-1], device=device)).shape[-1]
+        self.fc = nn.Sequential(nn.Linear(flat, 256), nn.ReLU()).to(device)
+        self.state = nn.Linear(state_dim, 256).to(device) if state_dim else None
+        self.out_features = 256 + (256 if state_dim else 0)
+
+    def forward(self, rgb: torch.Tensor, state: torch.Tensor | None = None) -> torch.Tensor:
+        batch = rgb.shape[:-3]
+        images = rgb.reshape(-1, *rgb.shape[-3:]).permute(0, 3, 1, 2).float() / 255.0
+        features = [self.fc(self.cnn(images)).reshape(*batch, -1)]
+        if self.state is not None:
+            features.append(self.state(state))
+        return torch.cat(features, -1)
+
+
+def _head(inputs: int, out: int, device: torch.device) -> nn.Sequential:
+    """ManiSkill's PPO-from-rgb heads over the encoder: 512 ReLU units, then the output."""
+    return nn.Sequential(nn.Linear(inputs, 512), nn.ReLU(), nn.Linear(512, out)).to(device)
+
+
 def make_models(env: EnvBase, hidden: int, device: torch.device) -> tuple[ProbabilisticActor, ValueOperator]:
-    """The actor (TanhNormal over the action bounds) and the critic, both reading ``"observation"``."""
-    obs_dim = env.observation_spec["observation"].shape[-1]
+    """The actor (TanhNormal over the action bounds) and the critic. From ``"observation"``: two 3-layer Tanh
+    MLPs. From ``"rgb"`` (and ``"state"``, ``--obs rgb``): ManiSkill's NatureCNN encoder, shared by both, with a
+    512-unit head each (``ClipPPOLoss`` sees the shared parameters once)."""
+    spec = env.observation_spec
     action_spec = env.action_spec_unbatched
     act_dim = action_spec.shape[-1]
-
-    def mlp(out: int) -> MLP:
-        return MLP(
-            in_features=obs_dim, out_features=out, num_cells=[hidden] * 3, activation_class=nn.Tanh, device=device
+    if "rgb" in spec.keys():
+        state_dim = spec["state"].shape[-1] if "state" in spec.keys() else None
+        encoder = NatureCNN(spec["rgb"].shape, state_dim, device)
+        keys = ["rgb", "state"] if state_dim else ["rgb"]
+        common = TensorDictModule(encoder, in_keys=keys, out_keys=["features"])
+        actor_net = nn.Sequential(
+            _head(encoder.out_features, act_dim, device),
+            AddStateIndependentNormalScale(act_dim, init_value=-0.5, device=device),
         )
+        actor_module = TensorDictSequential(
+            common, TensorDictModule(actor_net, in_keys=["features"], out_keys=["loc", "scale"])
+        )
+        value_net = _head(encoder.out_features, 1, device)
+        value = TensorDictSequential(common, TensorDictModule(value_net, ["features"], ["state_value"]))
+        last_layers = ((actor_net[0], 0.01), (value_net, 1.0))
+    else:
+        obs_dim = spec["observation"].shape[-1]
 
-    actor_net = nn.Sequential(
-        mlp(act_dim),
-        # ManiSkill's baseline: a learnt, state-independent log std starting at -0.5.
-        AddStateIndependentNormalScale(act_dim, init_value=-0.5, device=device),
-    )
+        def mlp(out: int) -> MLP:
+            return MLP(
+                in_features=obs_dim, out_features=out, num_cells=[hidden] * 3, activation_class=nn.Tanh, device=device
+            )
+
+        actor_net = nn.Sequential(
+            mlp(act_dim),
+            # ManiSkill's baseline: a learnt, state-independent log std starting at -0.5.
+            AddStateIndependentNormalScale(act_dim, init_value=-0.5, device=device),
+        )
+        actor_module = TensorDictModule(actor_net, in_keys=["observation"], out_keys=["loc", "scale"])
+        value = ValueOperator(mlp(1), in_keys=["observation"])
+        last_layers = ((actor_net[0], 0.01), (value.module, 1.0))
     policy = ProbabilisticActor(
-        TensorDictModule(actor_net, in_keys=["observation"], out_keys=["loc", "scale"]),
+        actor_module,
         spec=env.full_action_spec_unbatched.to(device),
         in_keys=["loc", "scale"],
         distribution_class=TanhNormal,
@@ -162,10 +227,9 @@ def make_models(env: EnvBase, hidden: int, device: torch.device) -> tuple[Probab
         return_log_prob=True,
         default_interaction_type=ExplorationType.RANDOM,
     )
-    value = ValueOperator(mlp(1), in_keys=["observation"])
     # Small last layers: near-zero initial actions and values, as in ManiSkill's baseline.
     with torch.no_grad():
-        for net, std in ((actor_net[0], 0.01), (value.module, 1.0)):
+        for net, std in last_layers:
             last = [m for m in net.modules() if isinstance(m, nn.Linear)][-1]
             nn.init.orthogonal_(last.weight, std)
             last.bias.zero_()
@@ -362,9 +426,9 @@ def save_checkpoint(
         {
             "format": CHECKPOINT_FORMAT,
             "env_id": args.env_id,
-            "obs_mode": "state",
+            "obs_mode": "rgb" if args.obs == "rgb" else "state",
             "control_mode": args.control_mode,
-            "obs_dim": env.observation_spec["observation"].shape[-1],
+            "obs_dim": env.observation_spec["observation"].shape[-1] if args.obs == "state" else None,
             "act_dim": env.action_spec_unbatched.shape[-1],
             "hidden": args.hidden,
             "repeat": args.repeat,
@@ -434,6 +498,20 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         type=int,
         default=None,
         help="frames per minibatch; default 50 with --smoke, 800 on the GPU sim, 50 on the CPU sim",
+    )
+    p.add_argument(
+        "--obs",
+        choices=("state", "rgb"),
+        default="state",
+        help="state: the task's state vector; rgb: its cameras' rgb (and the state, see --no-state) through "
+        "FlattenRGBD and ManiSkill's NatureCNN, as ManiSkill's PPO-from-rgb baseline",
+    )
+    p.add_argument("--image-size", type=int, default=64, help="camera width and height in pixels with --obs rgb")
+    p.add_argument(
+        "--no-state",
+        dest="include_state",
+        action="store_false",
+        help="--obs rgb without the state beside the images (ManiSkill's --no-include-state)",
     )
     p.add_argument("--hidden", type=int, default=256, help="width of the 3-layer Tanh MLPs of actor and critic")
     p.add_argument("--lr", type=float, default=3e-4, help="Adam's learning rate")
@@ -517,6 +595,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ):
         if getattr(args, name) < 1:
             p.error(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
+    if args.obs == "rgb" and args.image_size < 36:
+        p.error(f"--image-size must be >= 36 with --obs rgb (NatureCNN's convolutions), got {args.image_size}")
     if args.minibatch_size > args.num_envs * args.num_steps:
         p.error(
             f"--minibatch-size ({args.minibatch_size}) exceeds the frames per iteration "

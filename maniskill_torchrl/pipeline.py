@@ -2,7 +2,7 @@
 
 The CLI demo, the examples (PPO training and evaluation, Ray) and the README build
 their envs with :func:`make_env`, so the order of the transforms is written once:
-``ManiSkillEnv [-> IgnoreTerminations] [-> ActionRepeat] [-> EpisodeMetrics]``.
+``ManiSkillEnv [-> FlattenRGBD] [-> IgnoreTerminations] [-> ActionRepeat] [-> EpisodeMetrics]``.
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ from maniskill_torchrl._internal.repeat import check_repeat
 from maniskill_torchrl.envs.engine_env import ManiSkillEnv
 from maniskill_torchrl.transforms.action_repeat import ActionRepeat
 from maniskill_torchrl.transforms.episode_metrics import EpisodeMetrics
+from maniskill_torchrl.transforms.flatten_rgbd import FlattenRGBD
 from maniskill_torchrl.transforms.terminations import IgnoreTerminations
 
 __all__ = ["make_env"]
@@ -27,6 +28,7 @@ def make_env(
     repeat: int = 1,
     ignore_terminations: bool = False,
     metrics: bool = True,
+    flatten_rgbd: dict[str, Any] | None = None,
     **maniskill_kwargs: Any,
 ) -> TransformedEnv:
     """A ManiSkill task with the library's transforms, in their one sensible order.
@@ -38,7 +40,8 @@ def make_env(
     - ``num_envs=N``: ``ManiSkillEnv(env_id, num_envs=N)``, batch ``[N]`` (one GPU simulator
       with ``sim_backend="gpu"``, one process per env on the CPU sim).
 
-    Then ``IgnoreTerminations`` (episodes run to the time limit, as ManiSkill's evaluation
+    Then ``FlattenRGBD(**flatten_rgbd)`` where given (camera observations as ManiSkill's visual
+    baselines flatten them), ``IgnoreTerminations`` (episodes run to the time limit, as ManiSkill's evaluation
     does), ``ActionRepeat(repeat)`` where ``repeat > 1`` (inside the worker: no round trip
     per inner step) and ``EpisodeMetrics`` last, so that episode lengths count agent steps
     and repeated rewards arrive summed. The result is always a ``TransformedEnv``, possibly
@@ -52,6 +55,8 @@ def make_env(
         repeat: inner steps per agent step (``ActionRepeat``; 1: none).
         ignore_terminations: add ``IgnoreTerminations``.
         metrics: add ``EpisodeMetrics``.
+        flatten_rgbd: the options of a :class:`~maniskill_torchrl.transforms.FlattenRGBD` put first
+            (``{"depth": False}``: ManiSkill's PPO-from-rgb inputs); ``None``: none.
         **maniskill_kwargs: passed to :class:`~maniskill_torchrl.ManiSkillEnv` (``obs_mode``,
             ``control_mode``, ``sim_backend``, ``render_mode``, ``max_episode_steps``...).
             ``num_envs=None`` defaults ``sim_backend`` to the CPU sim.
@@ -70,6 +75,8 @@ def make_env(
         base = ManiSkillEnv(env_id, batch_size=[], **maniskill_kwargs)
     else:
         base = ManiSkillEnv(env_id, num_envs=num_envs, **maniskill_kwargs)
+    if flatten_rgbd is not None:
+        transforms.append(FlattenRGBD(**flatten_rgbd))
     if ignore_terminations:
         transforms.append(IgnoreTerminations())
     if repeat != 1:
