@@ -9,7 +9,7 @@ replay buffer.
 =================  ===========================  ==========================================
 group              name                         node
 =================  ===========================  ==========================================
-``env``            ``maniskill``                :class:`ManiSkillEnvConfig`
+``env``            ``maniskill``                :class:`ManiSkillEnvNodeConfig`
 ``transform``      ``action_repeat``            :class:`ActionRepeatConfig`
 ``transform``      ``episode_metrics``          :class:`EpisodeMetricsConfig`
 ``transform``      ``ignore_terminations``      :class:`IgnoreTerminationsConfig`
@@ -29,7 +29,18 @@ and the ``maniskill:`` prefix of :func:`torchrl.data.datasets.load_dataset`. It 
 
 :class:`ManiSkillEnvConfig` is the class the TorchRL pull request in ``upstream/`` adds to
 ``torchrl/trainers/algorithms/configs/envs_libs.py`` (``upstream/apply.py`` copies it from here),
-with its ``_target_`` there TorchRL's ``ManiSkillEnv`` and here this library's.
+with its ``_target_`` there TorchRL's ``ManiSkillEnv`` and here this library's. The ``env/maniskill``
+node is one node, the upstream one's name: :class:`ManiSkillEnvNodeConfig`, a subclass of TorchRL's
+``ManiSkillEnvConfig`` where TorchRL has one (of the copy here otherwise), so every YAML written for
+either composes with it, and it replaces TorchRL's node on purpose: it builds this library's env (a
+CPU-sim ``num_envs: 4`` runs the batched CPU engine) with TorchRL's gym node's defaults (one unbatched
+env) and the library's render device.
+
+TorchRL's own ``sota-implementations/*_trainer`` scripts get these nodes without an edit: the
+``hydra_plugins/maniskill_torchrl`` module shipped with the library (Hydra's plugin discovery)
+imports this module at app start where TorchRL's configs are imported (``python
+sota-implementations/sac_trainer/train.py env@training_env.create_env_fn.base_env=maniskill
+training_env.create_env_fn.base_env.env_name=PushCube-v1 ...``).
 """
 
 from __future__ import annotations
@@ -62,11 +73,13 @@ __all__ = [
     "KeepRandomFramesConfig",
     "LogEpisodeMetricsConfig",
     "ManiSkillEnvConfig",
+    "ManiSkillEnvNodeConfig",
     "ManiSkillExperienceReplayConfig",
     "OfflineToOnlineReplayBufferConfig",
     "PPOMLPConfig",
     "SparseRewardConfig",
     "SuccessRateEvaluationConfig",
+    "make_maniskill_env",
 ]
 
 
@@ -104,6 +117,71 @@ class ManiSkillEnvConfig(EnvLibsConfig):
     def __post_init__(self) -> None:
         """Post-initialization hook for ManiSkillEnv configuration."""
         super().__post_init__()
+
+
+# The upstream node where TorchRL has one (the pull request of upstream/ merged), else the copy above.
+from torchrl.trainers.algorithms.configs import envs_libs as _envs_libs  # noqa: E402
+
+_UpstreamManiSkillEnvConfig = getattr(_envs_libs, "ManiSkillEnvConfig", ManiSkillEnvConfig)
+
+
+@dataclass
+class ManiSkillEnvNodeConfig(_UpstreamManiSkillEnvConfig):
+    """The ``env/maniskill`` node: :class:`ManiSkillEnvConfig` (TorchRL's, or its copy here) building
+    this library's :class:`~maniskill_torchrl.ManiSkillEnv` (:func:`make_maniskill_env`).
+
+    Its defaults are those of TorchRL's gym node (``GymEnvConfig``) and the library's:
+
+    - ``num_envs: 0``: one env, unbatched (batch ``[]``), as ``GymEnvConfig``'s ``num_envs: 0``, so a
+      ``batched_env`` of them has batch ``[num_workers]``. ``num_envs: N >= 1``: one env of batch ``[N]``
+      (on the CPU sim, the batched CPU engine: one process per sub-env).
+    - ``render_backend: null``: the library's default, ``"cpu"`` where SAPIEN finds no CUDA device
+      (no "Requested to use render device sapien_cuda" warning), ManiSkill's ``"gpu"`` otherwise; a
+      name (``cpu``, ``gpu``, ``cuda:1``, ``none``: no rendering) is passed to ManiSkill.
+    - ``in_process`` and ``inference_mode``: :class:`~maniskill_torchrl.ManiSkillEnv`'s, decided by the
+      machine and the sim where null.
+
+    The env it builds pickles as its constructor, so a ``_partial_`` node holding it (TorchRL's
+    ``batched_env -> transformed_env -> base_env`` layout) works with every collector.
+    """
+
+    num_envs: int = 0
+    render_backend: str | None = None
+    in_process: bool | None = None
+    inference_mode: bool | None = None
+    _target_: str = "maniskill_torchrl.configs.make_maniskill_env"
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+
+
+def make_maniskill_env(
+    env_name: str,
+    *,
+    num_envs: int = 0,
+    batch_size: Any = None,
+    render_backend: str | None = None,
+    **kwargs: Any,
+) -> Any:
+    """:class:`~maniskill_torchrl.ManiSkillEnv` as :class:`ManiSkillEnvNodeConfig` builds it:
+    ``num_envs=0`` one unbatched env (``num_envs=1, batch_size=[]``), ``render_backend=None`` the
+    library's default render device; every other argument is ``ManiSkillEnv``'s."""
+    from maniskill_torchrl import ManiSkillEnv
+
+    if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 0:
+        raise ValueError(f"num_envs must be 0 (one unbatched env) or a positive int, got {num_envs!r}.")
+    if num_envs == 0:
+        if batch_size is not None and list(batch_size) != []:
+            raise ValueError(
+                f"num_envs=0 is one unbatched env (batch_size []), and batch_size={list(batch_size)} asks for "
+                "another: set num_envs to the batch size instead."
+            )
+        num_envs, batch_size = 1, []
+    if render_backend is not None:
+        kwargs["render_backend"] = render_backend
+    if batch_size is not None:
+        kwargs["batch_size"] = list(batch_size)
+    return ManiSkillEnv(env_name, num_envs=num_envs, **kwargs)
 
 
 # ----------------------------------------------------------------------------- transforms
@@ -357,7 +435,8 @@ class KeepRandomFramesConfig(HookConfig):
 
 def _register_configs() -> None:
     cs = ConfigStore.instance()
-    cs.store(group="env", name="maniskill", node=ManiSkillEnvConfig)
+    # One node, the upstream one's name: the library's subclass replaces TorchRL's (if any) on purpose.
+    cs.store(group="env", name="maniskill", node=ManiSkillEnvNodeConfig)
     cs.store(group="transform", name="action_repeat", node=ActionRepeatConfig)
     cs.store(group="transform", name="episode_metrics", node=EpisodeMetricsConfig)
     cs.store(group="transform", name="ignore_terminations", node=IgnoreTerminationsConfig)

@@ -237,9 +237,13 @@ class ManiSkillWrapper(maniskill.ManiSkillWrapper):
         return None if gather is None else gather.host_value(tensor)
 
     def __reduce__(self) -> Any:
-        # A live SAPIEN sim (and worker processes) cannot cross a pickle; what makes one can.
+        # A live SAPIEN sim (and worker processes) cannot cross a pickle; what makes one can. A wrapper around the
+        # user's own gym env has nothing to rebuild it from (ManiSkillEnv pickles as its constructor). The message
+        # starts as Python's own ("cannot pickle '...' object"): TorchRL 0.14.1's multi-process collectors re-raise
+        # a TypeError at a worker's start only when it says so, and swallow any other (the worker then dies unseen).
         raise TypeError(
-            f"{type(self).__name__} holds a live ManiSkill sim and cannot be pickled. Pickle what makes it "
+            f"cannot pickle {type(self).__name__!r} object: it holds a live ManiSkill sim (the gym env it wraps), "
+            "which nothing can rebuild in another process. Pickle what makes it "
             "instead: functools.partial(ManiSkillEnv, 'PickCube-v1', ...), torchrl.envs.EnvCreator(make_env), "
             "or functools.partial(maniskill_torchrl.pipeline.make_env, 'PickCube-v1', ...) for collectors, "
             "ParallelEnv and Ray."
@@ -292,6 +296,12 @@ class ManiSkillEnv(maniskill.ManiSkillEnv, ManiSkillWrapper):
             another raises a :class:`~maniskill_torchrl.RenderDeviceError` naming both and the
             fixes.
 
+    Pickling: the env pickles as its constructor (its task id and keyword arguments), so TorchRL's collectors,
+    ``ParallelEnv`` and Ray can take a live env, e.g. the one a Hydra ``_partial_`` node holds. What unpickles is
+    a new env built from those arguments, never stepped or seeded: the pickled env's episode, seed and steps are
+    not carried over. A :class:`ManiSkillWrapper` around your own gym env cannot be rebuilt so, and refuses
+    pickling (``TypeError: cannot pickle ...``).
+
     Examples:
         >>> from maniskill_torchrl import ManiSkillEnv
         >>> env = ManiSkillEnv("PickCube-v1", obs_mode="state_dict")
@@ -311,6 +321,9 @@ class ManiSkillEnv(maniskill.ManiSkillEnv, ManiSkillWrapper):
         inference_mode: bool | None = None,
         **kwargs: Any,
     ) -> None:
+        # What pickling rebuilds the env from (__reduce__).
+        constructor = {"num_envs": num_envs, "in_process": in_process, "inference_mode": inference_mode, **kwargs}
+        self._init_args = (env_name, constructor)
         keys = {k: kwargs.pop(k) for k in _WRAPPER_KEYWORDS if k in kwargs}
         pixels, batch_size = keys.get("from_pixels", False), keys.get("batch_size")
         kwargs = maniskill._task_kwargs(env_name, num_envs, pixels, batch_size, kwargs)
@@ -334,3 +347,16 @@ class ManiSkillEnv(maniskill.ManiSkillEnv, ManiSkillWrapper):
         with no_asset_prompt(env_name), render_device_errors(env_name, kwargs.get("render_backend")):
             super().__init__(env_name, num_envs=num_envs, **keys, **kwargs)
         remember_render_device(self._env, env_name)
+
+    def __reduce__(self) -> Any:
+        # Pickles as its constructor (task id and keyword arguments): the sim itself cannot cross a pickle. What
+        # unpickles is a new env, built afresh, never stepped or seeded: the pickled env's state (episode, seed,
+        # steps taken, a closed env too) is not carried over. So a functools.partial or a Hydra `_partial_` node
+        # holding a live ManiSkillEnv works with TorchRL's collectors, ParallelEnv and Ray.
+        env_name, kwargs = self._init_args
+        return _rebuild_env, (type(self), env_name, kwargs)
+
+
+def _rebuild_env(cls: type, env_name: str, kwargs: dict) -> Any:
+    """A new ``cls(env_name, **kwargs)``: what a pickled :class:`ManiSkillEnv` unpickles as."""
+    return cls(env_name, **kwargs)

@@ -27,7 +27,7 @@ from support.helpers import make_gym_env, record_episodes, seeded_rollout
 ROOT = Path(__file__).resolve().parents[2]
 TASK = "PickCube-v1"
 REGISTERED = {
-    ("env", "maniskill"): configs.ManiSkillEnvConfig,
+    ("env", "maniskill"): configs.ManiSkillEnvNodeConfig,
     ("transform", "action_repeat"): configs.ActionRepeatConfig,
     ("transform", "episode_metrics"): configs.EpisodeMetricsConfig,
     ("transform", "ignore_terminations"): configs.IgnoreTerminationsConfig,
@@ -172,3 +172,88 @@ def test_without_hydra_the_error_names_the_extra(monkeypatch):
     monkeypatch.delitem(sys.modules, "maniskill_torchrl.configs")
     with pytest.raises(ImportError, match=r"maniskill-torchrl\[hydra\]"):
         importlib.import_module("maniskill_torchrl.configs")
+
+
+# ----------------------------------------------------------------------------- the env node (issue 62)
+def test_env_node_is_the_upstream_config_with_the_librarys_defaults():
+    """One ``env/maniskill`` node: a subclass of the upstream ``ManiSkillEnvConfig`` (every YAML written for it
+    composes), with TorchRL's gym node's default (one unbatched env) and the library's render device."""
+    node = configs.ManiSkillEnvNodeConfig
+    assert issubclass(node, configs.ManiSkillEnvConfig)
+    defaults = OmegaConf.structured(node(env_name=TASK))
+    assert defaults.num_envs == 0 and defaults.render_backend is None
+    # TorchRL's own gym node is unbatched by default the same way.
+    from torchrl.trainers.algorithms.configs import GymEnvConfig
+
+    assert OmegaConf.structured(GymEnvConfig(env_name="Pendulum-v1")).num_envs == 0
+    OmegaConf.structured(node(env_name=TASK, render_backend=None, num_envs=4))  # null is valid
+
+
+def test_env_node_builds_one_unbatched_env_without_the_render_warning(capfd):
+    capfd.readouterr()
+    env = _build(configs.ManiSkillEnvNodeConfig(env_name=TASK, obs_mode="state", max_episode_steps=4))
+    assert type(env) is ManiSkillEnv and env.batch_size == ()
+    # ManiSkill's "Requested to use render device "sapien_cuda", but CUDA device was not found" (its own handler).
+    assert "sapien_cuda" not in "".join(capfd.readouterr())
+    want = ManiSkillEnv(TASK, obs_mode="state", max_episode_steps=4, batch_size=[])
+    assert_tensordict_equal(_rollout(env), _rollout(want))
+    batched = _build(configs.ManiSkillEnvNodeConfig(env_name=TASK, obs_mode="state", num_envs=1))
+    assert batched.batch_size == (1,)
+    with pytest.raises(ValueError, match="num_envs=0 is one unbatched env"):
+        configs.make_maniskill_env(TASK, num_envs=0, batch_size=[2])
+    with pytest.raises(ValueError, match="num_envs must be 0"):
+        configs.make_maniskill_env(TASK, num_envs=-1)
+
+
+def test_env_pickles_as_its_constructor():
+    """A pickled ManiSkillEnv unpickles as a new env built from the same arguments (what a Hydra ``_partial_``
+    node holding a live env needs in a collector's workers); a stepped env's state is not carried over."""
+    import pickle
+
+    env = ManiSkillEnv(TASK, obs_mode="state", max_episode_steps=4, batch_size=[])
+    env.rand_step(env.reset(seed=1))
+    copy = pickle.loads(pickle.dumps(env))
+    assert type(copy) is ManiSkillEnv and copy is not env and copy.batch_size == ()
+    assert copy.max_episode_steps == 4
+    assert_tensordict_equal(_rollout(copy), _rollout(env))
+
+
+def test_a_wrapper_of_a_users_env_refuses_pickling_as_python_words_it():
+    """A ManiSkillWrapper around the user's own gym env cannot be rebuilt elsewhere: the TypeError says "cannot
+    pickle '...' object", the words TorchRL 0.14.1's multi-process collectors re-raise at a worker's start
+    (another TypeError there is swallowed and the worker dies unseen)."""
+    import pickle
+
+    from maniskill_torchrl import ManiSkillWrapper
+
+    env = ManiSkillWrapper(make_gym_env(TASK, obs_mode="state"))
+    with pytest.raises(TypeError, match="^cannot pickle 'ManiSkillWrapper' object: it holds a live ManiSkill sim"):
+        pickle.dumps(env)
+
+
+_PLUGIN_SCAN = """
+import sys
+{imports}
+from hydra.core.config_store import ConfigStore
+from hydra.core.plugins import Plugins
+Plugins.instance()  # Hydra's plugin discovery, as @hydra.main runs it
+print("hydra_plugins.maniskill_torchrl" in sys.modules, "maniskill_torchrl.configs" in sys.modules,
+      "maniskill.yaml" in ConfigStore.instance().repo.get("env", {{}}))
+"""
+
+
+@pytest.mark.parametrize(
+    ("imports", "registered"),
+    [("", False), ("from torchrl.trainers.algorithms.configs import *  # noqa", True)],
+    ids=["unrelated-app", "torchrl-configs-imported"],
+)
+def test_hydra_plugin_registers_the_nodes_only_beside_torchrls_configs(imports, registered):
+    """``hydra_plugins/maniskill_torchrl`` (shipped with the library) runs at Hydra's plugin discovery: it registers
+    the nodes where TorchRL's configs are imported (TorchRL's sota ``train.py`` files import them before
+    ``hydra.main`` runs), and an unrelated Hydra app imports nothing of the library's."""
+    import subprocess
+
+    code = _PLUGIN_SCAN.format(imports=imports)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=240, cwd=ROOT)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.split() == ["True", str(registered), str(registered)], out.stderr[-3000:]
