@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import sys
 from typing import TYPE_CHECKING, Any
 
 __version__ = "0.1.0"
@@ -41,6 +42,22 @@ _require_maniskill()
 # No global state is changed here: the multiprocessing start method stays what it was (``import torchrl``,
 # which the envs import, sets "spawn" when nothing is set: TorchRL's own choice). The library's own
 # worker processes name their context (``multiprocessing.get_context``), as gymnasium's AsyncVectorEnv does.
+
+
+def _register_dataset_prefix() -> None:
+    """The ``maniskill:`` prefix of TorchRL's ``load_dataset``, registered as TorchRL registers its own: a
+    ``"module:attribute"`` string, resolved (the data module imported) when first used. Only TorchRL's registry
+    changes, and only where TorchRL is imported: ``import maniskill_torchrl`` does not import it (the gym shim's
+    workers never do); the library's TorchRL modules (envs, transforms, data, configs) call this on import."""
+    if "torchrl.data.datasets" not in sys.modules and "torchrl" not in sys.modules:
+        return
+    from torchrl.data.datasets import register_dataset
+
+    # replace=True: the same string again on a second call (or a reload).
+    register_dataset("maniskill", "maniskill_torchrl.data.datasets:load_maniskill_dataset", replace=True)
+
+
+_register_dataset_prefix()
 
 _EXPORTS = {
     "ManiSkillEnv": "maniskill_torchrl.envs",

@@ -9,6 +9,7 @@
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path, PurePosixPath
 from typing import Any
 
@@ -90,7 +91,7 @@ def _resolve(dataset_id: str, obs_mode: str | None, control_mode: str | None) ->
     """(the ``.h5`` file, the task it must hold or ``None`` for a path)."""
     if not isinstance(dataset_id, str) or not dataset_id.strip():
         raise ValueError(f"A maniskill: dataset id is a trajectory file or <task>/<source>, got {dataset_id!r}.")
-    given = Path(dataset_id).expanduser()
+    given = _user_path(dataset_id)
     parts = PurePosixPath(dataset_id).parts
     explicit = dataset_id.startswith(("~", ".")) or given.is_absolute()
     if given.exists() or explicit or len(parts) not in (2, 3):
@@ -107,6 +108,32 @@ def _resolve(dataset_id: str, obs_mode: str | None, control_mode: str | None) ->
             "or make one in these modes with ManiSkill's replay_trajectory (-o OBS_MODE -c CONTROL_MODE)."
         )
     return target, task
+
+
+def _user_path(dataset_id: str) -> Path:
+    """The path ``dataset_id`` names: a relative one, while a Hydra app runs, from the directory it started in
+    (``hydra.utils.to_absolute_path``): its ``hydra.job.chdir`` (TorchRL's sota configs set it) moves the working
+    directory into the run's output folder, where the user's ``demos=demos/x.h5`` is not."""
+    path = Path(dataset_id).expanduser()
+    hydra_config = sys.modules.get("hydra.core.hydra_config")  # never imported here: only a running app has it
+    if path.is_absolute() or hydra_config is None or not hydra_config.HydraConfig.initialized():
+        return path
+    from hydra.utils import to_absolute_path
+
+    return Path(to_absolute_path(str(path)))
+
+
+def _unknown_task(task: str) -> str:
+    """The env's own error for a task id that is no registered task (its did-you-mean), else ``""``."""
+    from maniskill_torchrl.envs import maniskill
+
+    if task in maniskill.ManiSkillWrapper.available_envs:
+        return ""
+    try:
+        maniskill._task_kwargs(task, 1, False, None, {})  # raises the env's "Unknown ManiSkill env ..." error
+    except ValueError as err:
+        return f"{err} "
+    return ""
 
 
 def _modes(path: Path) -> tuple[str | None, str | None]:
@@ -180,7 +207,8 @@ def _missing(dataset_id: str, where: Path, task: str | None, empty: bool = False
         )
     name = task or "<task>"
     return (
-        f"{found}. {how}. Nothing is downloaded. Make demonstrations with ManiSkill's tools: "
+        (_unknown_task(task) if task is not None else "")
+        + f"{found}. {how}. Nothing is downloaded. Make demonstrations with ManiSkill's tools: "
         f"`python -m mani_skill.utils.download_demo {name}` (published demos, without observations), "
         f"or its motion planners, `python -m mani_skill.examples.motionplanning.panda.run -e {name} "
         f"--record-dir <demo folder> --traj-name trajectory`; then add observations in your modes with "

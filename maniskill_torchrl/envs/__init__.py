@@ -9,6 +9,9 @@
 
 from __future__ import annotations
 
+from maniskill_torchrl import _register_dataset_prefix
 from maniskill_torchrl.envs.engine_env import ManiSkillEnv, ManiSkillWrapper
 
 __all__ = ["ManiSkillWrapper", "ManiSkillEnv"]
+
+_register_dataset_prefix()  # TorchRL is imported now: the maniskill: prefix of its load_dataset

@@ -1,5 +1,6 @@
 """TorchRL transforms for ManiSkill envs."""
 
+from maniskill_torchrl import _register_dataset_prefix
 from maniskill_torchrl.transforms.action_repeat import ActionRepeat
 from maniskill_torchrl.transforms.cpu_unbatch import CPUUnbatch
 from maniskill_torchrl.transforms.env_states import EnvStates
@@ -19,3 +20,5 @@ __all__ = [
     "IgnoreTerminations",
     "SparseReward",
 ]
+
+_register_dataset_prefix()  # TorchRL is imported now: the maniskill: prefix of its load_dataset

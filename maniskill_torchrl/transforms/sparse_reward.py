@@ -22,6 +22,12 @@ class SparseReward(Transform):
     and ``("next", "fail")``; on an env, the reward of each step. The reward is shaped as the
     library's envs shape it (``[*batch, 1]``); specs are unchanged.
 
+    TorchRL's own :class:`~torchrl.envs.transforms.SuccessReward` (0.14.1) is the success term alone: it has no
+    fail term (a failed step gets 0, not -1), writes the reward shaped as the success entry (``[*batch]`` for
+    ManiSkill's, not the env's ``[*batch, 1]``) and rewrites the env's reward spec to ``{0, scale}``. On a task
+    that never fails (``fail`` always False, or absent), ``SuccessReward`` gives the same values; for ManiSkill's
+    sparse reward on every task, use this transform.
+
     Args:
         success_key (NestedKey): default ``"success"``.
         fail_key (NestedKey): default ``"fail"``.

@@ -257,3 +257,18 @@ def test_hydra_plugin_registers_the_nodes_only_beside_torchrls_configs(imports, 
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=240, cwd=ROOT)
     assert out.returncode == 0, out.stderr[-3000:]
     assert out.stdout.split() == ["True", str(registered), str(registered)], out.stderr[-3000:]
+
+
+def test_rlpd_yaml_takes_maniskills_target_entropy():
+    """ManiSkill's RLPD sets the target entropy to -act_dim / 2 (TorchRL's "auto": -act_dim): PickCube-v1's
+    pd_joint_delta_pos has 8 action dims."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(ROOT / "examples" / "trainers" / "config"), version_base="1.3"):
+        cfg = compose("rlpd_pickcube", overrides=["demos=/any/file.h5"])
+    GlobalHydra.instance().clear()
+    assert cfg.training_env.base_env.control_mode == "pd_joint_delta_pos"
+    env = ManiSkillEnv(TASK, obs_mode="state", control_mode="pd_joint_delta_pos", batch_size=[])
+    assert cfg.loss.target_entropy == -env.action_spec.shape[-1] / 2 == -4.0

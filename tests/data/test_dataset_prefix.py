@@ -197,3 +197,48 @@ def test_offline_to_online_online_batches_without_index(demo, tmp_path):
     rb = OfflineToOnlineReplayBuffer(f"maniskill:{demo}", batch_size=8, online_capacity=100, root=tmp_path)
     rb.extend(_online_batch(rb, with_index=False))
     rb.sample()
+
+
+# ----------------------------------------------------------------------------- issue 62
+def test_a_misspelt_task_gets_the_envs_did_you_mean(demo_dir):
+    with pytest.raises(FileNotFoundError) as error:
+        load_dataset("maniskill:PickCub-v1/motionplanning", batch_size=4)
+    message = str(error.value)
+    assert message.startswith("Unknown ManiSkill env 'PickCub-v1'. Did you mean one of [")
+    assert "'PickCube-v1'" in message and "No such file or folder" in message
+
+
+def test_a_relative_path_under_a_running_hydra_app_is_from_where_it_started(demo, expected, tmp_path, monkeypatch):
+    """``hydra.job.chdir`` moves the working directory into the run's folder: ``demos=demos/x.h5`` is still the
+    user's path, read against Hydra's original working directory (``hydra.utils.to_absolute_path``)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    start = tmp_path / "start"
+    place(demo, start / "demos" / "pick.h5")
+    run_dir = tmp_path / "outputs" / "run"
+    run_dir.mkdir(parents=True)
+    monkeypatch.chdir(run_dir)
+    monkeypatch.setattr(HydraConfig, "initialized", staticmethod(lambda: True))
+    monkeypatch.setattr("hydra.utils.get_original_cwd", lambda: str(start))
+    rb = load_dataset("maniskill:demos/pick.h5", batch_size=4, root=str(tmp_path / "cache"))
+    assert_tensordict_equal(rb[:], expected)
+
+
+def test_import_maniskill_torchrl_registers_the_prefix_without_importing_torchrl():
+    """``import maniskill_torchrl`` registers the prefix in TorchRL's registry where TorchRL is imported (and the
+    library's TorchRL modules on their import), and never imports TorchRL itself (the gym shim's workers)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, torchrl, maniskill_torchrl\n"
+        "from torchrl.data.datasets.utils import _DATASET_REGISTRY\n"
+        "assert 'maniskill_torchrl.data' not in sys.modules\n"
+        "print(_DATASET_REGISTRY.get('maniskill'))\n"
+        "import maniskill_torchrl.wrappers\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=240)
+    assert out.stdout.strip() == "maniskill_torchrl.data.datasets:load_maniskill_dataset", out.stderr[-2000:]
+    alone = "import sys, maniskill_torchrl, maniskill_torchrl.wrappers; print('torchrl' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", alone], capture_output=True, text=True, timeout=240)
+    assert out.stdout.strip() == "False", out.stderr[-2000:]

@@ -48,3 +48,20 @@ def test_on_a_dense_env_it_gives_maniskills_sparse_reward():
         rollouts.append(seeded_rollout(env, 5, seed=0))
     got, want = rollouts
     assert_tensordict_equal(got, want)
+
+
+def test_against_torchrls_success_reward():
+    """TorchRL 0.14.1's ``SuccessReward`` (``torchrl.envs.transforms``) is the success term alone: the same values
+    where no step fails, none of the fail term (-1) and a reward shaped as the success entry ([N], not the env's
+    [N, 1]). What ManiSkill's ``reward_mode="sparse"`` gives is ``SparseReward``'s (the docstring says so)."""
+    from torchrl.envs.transforms import SuccessReward
+
+    success = torch.tensor([False, True, True, False])
+    fail = torch.tensor([False, False, True, True])
+    ours = SparseReward()(TensorDict({"success": success, "fail": fail}, [4]))["reward"]
+    theirs = SuccessReward()(TensorDict({"success": success, "fail": fail}, [4]))["reward"]
+    assert ours.shape == (4, 1) and theirs.shape == (4,)
+    assert ours.squeeze(-1).tolist() == [0.0, 1.0, 0.0, -1.0]
+    assert theirs.tolist() == [0.0, 1.0, 1.0, 0.0]  # no fail term
+    no_fail = ~fail
+    assert torch.equal(ours.squeeze(-1)[no_fail], theirs[no_fail].to(ours.dtype))
