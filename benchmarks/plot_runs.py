@@ -4,7 +4,9 @@ against the run's own progress (frames, or iterations for BC) and against wall m
 run's random-policy evaluation (where it has one) dashed in its colour (``benchmarks/plot_style.py``:
 solid for what was measured, dashed for the baseline, dotted for a reference; the legend below the
 axes). ``--markers-only`` draws the evaluations as points (runs of a few evaluations); success axes
-run from 0 to 1, return axes from 0.
+run from 0 to 1, return axes from 0. A run whose records carry a ``seed`` (several seeds of one
+configuration, e.g. from ``scripts/trainer_csv.py``) is drawn as the median over its seeds, the i-th
+evaluation of each, with their range (min to max) shaded.
 
 Run::
 
@@ -37,6 +39,26 @@ def load(path: Path) -> tuple[list[dict], dict | None]:
     return evals, random
 
 
+def seeds_median(evals: list[dict]) -> tuple[list[dict], list[dict], list[dict], int]:
+    """Several seeds' evaluations (records with a ``seed``) as one curve: (median, min, max) records of the
+    i-th evaluation of every seed, up to the shortest seed's count, and the number of seeds."""
+    import statistics
+
+    per_seed: dict = {}
+    for e in evals:
+        per_seed.setdefault(e["seed"], []).append(e)
+    n = min(len(v) for v in per_seed.values())
+    keys = [k for k, v in evals[0].items() if isinstance(v, (int, float)) and k != "seed"]
+    med, lo, hi = [], [], []
+    for i in range(n):
+        points = [v[i] for v in per_seed.values()]
+        values = {k: [p[k] for p in points if isinstance(p.get(k), (int, float))] for k in keys}
+        med.append({k: statistics.median(v) for k, v in values.items() if v})
+        lo.append({k: min(v) for k, v in values.items() if v})
+        hi.append({k: max(v) for k, v in values.items() if v})
+    return med, lo, hi, len(per_seed)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("runs", nargs="+", help="label=path/to/metrics.jsonl")
@@ -58,12 +80,22 @@ def main(argv: list[str] | None = None) -> int:
         style = plot_style.measured(i, marker="osD^"[i % 4])
         if args.markers_only:
             style.update(ls="none", ms=7)
+        band = None
+        if "seed" in evals[0]:
+            evals, lo, hi, n_seeds = seeds_median(evals)
+            band = (lo, hi)
+            label = f"{label} (median and range of {n_seeds} seeds)"
         for row, key in enumerate(("success_once", "return")):
             if key not in evals[0]:
                 continue
             ys = [e[key] for e in evals]
             axes[row, 0].plot([e[progress] for e in evals], ys, **style, label=label)
             axes[row, 1].plot([e["wall_s"] / 60 for e in evals], ys, **style)
+            if band is not None:
+                lows, highs = [e[key] for e in band[0]], [e[key] for e in band[1]]
+                color = axes[row, 0].lines[-1].get_color()
+                axes[row, 0].fill_between([e[progress] for e in evals], lows, highs, color=color, alpha=0.18, lw=0)
+                axes[row, 1].fill_between([e["wall_s"] / 60 for e in evals], lows, highs, color=color, alpha=0.18, lw=0)
             if random is not None and key in random:
                 for ax in axes[row]:
                     ax.axhline(random[key], **plot_style.baseline(i), label=f"{label}: random policy")

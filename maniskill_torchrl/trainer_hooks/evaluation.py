@@ -26,7 +26,9 @@ class SuccessRateEvaluation(TrainerHookBase):
     TanhNormal's ``tanh(loc)``), through :func:`maniskill_torchrl.evaluation.evaluate_policy`.
     It logs the means to the trainer's logger at the trainer's frame count:
     ``<prefix>/success_once``, ``<prefix>/success_at_end``, ``<prefix>/return`` (and
-    ``<prefix>/episodes``, ``<prefix>/seconds``).
+    ``<prefix>/episodes``, ``<prefix>/seconds``, and ``<prefix>/wall_s``: seconds since the hook was registered,
+    the trainer built, to this evaluation's end, training and evaluations included; what
+    ``scripts/trainer_csv.py`` reads as the committed curves' ``wall_s``).
 
     Args:
         create_env_fn: the evaluation env, or a callable that builds it (called at the first
@@ -92,6 +94,7 @@ class SuccessRateEvaluation(TrainerHookBase):
     # ---------------------------------------------------------------- the hook
     def register(self, trainer: Any, name: str = "success_rate_evaluation") -> None:
         self.trainer = trainer
+        self._registered = time.perf_counter()  # wall_s counts from here
         trainer.register_op("post_steps_log", self)
         trainer.register_op("shutdown", self.close)
         if self.at_start:
@@ -122,13 +125,14 @@ class SuccessRateEvaluation(TrainerHookBase):
             if training:
                 policy.train()
         result["seconds"] = time.perf_counter() - start
+        result["wall_s"] = time.perf_counter() - getattr(self, "_registered", start)
         logger = self.trainer.logger
         if logger is not None:
             for key, value in result.items():
                 logger.log_scalar(f"{self.prefix}/{key}", value, step=frames)
         torchrl_logger.info(
             f"{self.prefix} at {frames} frames: "
-            + ", ".join(f"{k} {v:.3f}" for k, v in result.items() if k not in ("episodes", "seconds"))
+            + ", ".join(f"{k} {v:.3f}" for k, v in result.items() if k not in ("episodes", "seconds", "wall_s"))
         )
         self.results.append({"frames": frames, **result})
         return result
