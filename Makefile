@@ -1,6 +1,6 @@
 # maniskill_torchrl developer targets. Run `make` for help.
 .DEFAULT_GOAL := help
-.PHONY: help setup test test-pictures test-examples test-readme test-ray test-model test-upstream test-cuda-double test-registry test-nightly lint docs demo bench clean gpu-kit gpu-check
+.PHONY: help setup test test-pictures test-examples test-sota test-readme test-ray test-model test-upstream test-cuda-double test-registry test-nightly lint docs demo bench clean gpu-kit gpu-check
 
 # MANISKILL=release (default: mani-skill 3.0.x, in .venv) or nightly (mani-skill-nightly, in .venv-nightly).
 MANISKILL   ?= release
@@ -28,6 +28,7 @@ help:
 	@echo "  make test    run the test suite, in 2 processes (PYTEST_ARGS=... passed to pytest; WORKERS=1: serially)"
 	@echo "  make test-pictures  the tests that render (rgb, from_pixels, render()), left out of make test (-m pictures, ~1 min)"
 	@echo "  make test-examples  the examples end to end, as users run them: the demo CLI, PPO, SAC, BC, evaluation, TorchRL's trainers (tests/examples, ~2.5 min)"
+	@echo "  make test-sota  TorchRL's own sota trainer scripts (tests/configs/sota), unmodified, on ManiSkill, and a live env in every collector (tests/examples/test_sota_trainers.py, ~6 min)"
 	@echo "  make test-readme  the README walked as a newcomer: fresh venv from the wheel, each command from a temp folder (~8 min)"
 	@echo "  make test-ray  TorchRL's Ray collectors over the library's envs, on a local Ray instance (tests/examples/test_ray.py, ~1 min)"
 	@echo "  make test-model  the model-based test of the asynchronous path, long profile (hypothesis, ~5 min)"
@@ -64,7 +65,13 @@ test-pictures: setup
 	$(VENV)/bin/python -m pytest -q --durations=5 $(call xdist,loadfile) $(SUITE) -m pictures $(PYTEST_ARGS)
 
 test-examples: setup
-	$(VENV)/bin/python -m pytest -q --durations=10 $(call xdist,loadfile) tests/examples --ignore=tests/examples/test_ray.py $(PYTEST_ARGS)
+	$(VENV)/bin/python -m pytest -q --durations=10 $(call xdist,loadfile) tests/examples --ignore=tests/examples/test_ray.py \
+		--ignore=tests/examples/test_sota_trainers.py $(PYTEST_ARGS)
+
+# TorchRL's sota trainer scripts as a user runs them (subprocesses with timeouts: a hang fails, never blocks CI);
+# each run is a process tree of TorchRL's workers, each importing torch, TorchRL and ManiSkill.
+test-sota: setup
+	$(VENV)/bin/python -m pytest -q --durations=10 $(call xdist,load) tests/examples/test_sota_trainers.py $(PYTEST_ARGS)
 
 # The README as a newcomer walks it (tests/readme): a fresh venv from the built wheel with the README's extras, every
 # README command from a temporary folder with its smoke flag (~8 min on 2 cores: each command a fresh process; BC plans its demos).
