@@ -154,9 +154,9 @@ def test_config_composes(name):
     assert cfg.trainer._target_ == f"torchrl.trainers.algorithms.configs.trainers.{target}"
     for which in ("training_env", "eval_env"):
         env = cfg[which]
-        assert (
-            env._target_ == "torchrl.envs.TransformedEnv" and env.base_env._target_ == "maniskill_torchrl.ManiSkillEnv"
-        )
+        assert env._target_ == "torchrl.envs.TransformedEnv"
+        # The env/maniskill node (ManiSkillEnvNodeConfig) builds the library's ManiSkillEnv through its factory.
+        assert env.base_env._target_ == "maniskill_torchrl.configs.make_maniskill_env"
         assert [t._target_ for t in env.transform.transforms] == [
             "maniskill_torchrl.transforms.IgnoreTerminations",
             "maniskill_torchrl.transforms.EpisodeMetrics",
