@@ -30,7 +30,7 @@ help:
 	@echo "  make test-examples  the examples end to end, as users run them: the demo CLI, PPO, SAC, BC, evaluation, TorchRL's trainers (tests/examples, ~2.5 min)"
 	@echo "  make test-sota  TorchRL's own sota trainer scripts (tests/configs/sota), unmodified, on ManiSkill, and a live env in every collector (tests/examples/test_sota_trainers.py, ~6 min)"
 	@echo "  make test-readme  the README walked as a newcomer: fresh venv from the wheel, each command from a temp folder (~8 min)"
-	@echo "  make test-ray  TorchRL's Ray collectors over the library's envs, on a local Ray instance (tests/examples/test_ray.py, ~1 min)"
+	@echo "  make test-ray  TorchRL's Ray collectors over the library's envs, on a local Ray instance (tests/examples/test_ray.py, ~4 min on 2 cores)"
 	@echo "  make test-model  the model-based test of the asynchronous path, long profile (hypothesis, ~5 min)"
 	@echo "  make test-upstream  the TorchRL pull request of upstream/ on a copy of the installed torchrl (tests/upstream, ~1.5 min)"
 	@echo "  make test-cuda-double  the library on a CUDA machine, under the CUDA double (tests/gpu/test_cuda_machine.py, ~2.5 min)"

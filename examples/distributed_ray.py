@@ -33,6 +33,11 @@ and the policy by pickle, not the code they import.
 A remote collector that crashes (its env factory raises, or its process dies) makes the
 iteration raise a Ray error naming the actor (``ActorDiedError``/``RayTaskError``);
 ``--crash`` demonstrates it (tests/test_ray.py checks it under a time limit).
+
+Ctrl-C and SIGTERM stop the collection: the script prints the frames (and episodes) collected so far,
+shuts the collector and Ray down (its actors and the env workers under them: nothing is left running)
+and exits 130 (SIGINT) or 143 (SIGTERM), without a traceback. (``ray.init`` replaces the process's SIGTERM
+handler with one that exits 15: the script puts its own back.)
 """
 
 from __future__ import annotations
@@ -41,12 +46,15 @@ import argparse
 import functools
 import logging
 import os
+import signal
 import sys
 import time
 import warnings
 
 import torch
 from torch import nn
+
+import stopping
 
 ENV_ID = "PushCube-v1"
 
@@ -182,6 +190,11 @@ def summarize(batch) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
+    with stopping.interruptible():  # SIGTERM as Ctrl-C: the frames so far are printed, then exit 143 (130)
+        return _main(argv)
+
+
+def _main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         description=__doc__.splitlines()[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
     )
@@ -224,7 +237,11 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(1)
     t0 = time.perf_counter()
-    obs_dim, act_dim = env_dims(args.env_id)
+    try:
+        obs_dim, act_dim = env_dims(args.env_id)
+    except KeyboardInterrupt as err:
+        print(f"{stopping.said(err)} before the collection started: 0 frames collected", flush=True)
+        return stopping.exit_status(err)
     policy = make_policy(obs_dim, act_dim, seed=args.seed)
     env_fn = functools.partial(make_env, args.env_id, args.num_envs, args.max_episode_steps)
     if args.crash == "factory":
@@ -234,17 +251,27 @@ def main(argv: list[str] | None = None) -> int:
 
     collector = None
     ok = True
+    frames = episodes = successes = 0
+    t1 = time.perf_counter()
+    ours = signal.getsignal(signal.SIGTERM)
     try:
-        collector = make_collector(
-            policy,
-            collectors=args.collectors,
-            frames_per_batch=args.frames_per_batch,
-            total_frames=args.frames_per_batch * args.batches,
-            env_fn=env_fn,
-            address=args.address,
-            num_cpus=args.num_cpus,
-            worker_logs=args.worker_logs,
-        )
+        try:
+            collector = make_collector(
+                policy,
+                collectors=args.collectors,
+                frames_per_batch=args.frames_per_batch,
+                total_frames=args.frames_per_batch * args.batches,
+                env_fn=env_fn,
+                address=args.address,
+                num_cpus=args.num_cpus,
+                worker_logs=args.worker_logs,
+            )
+        except SystemExit as exc:  # Ray's SIGTERM handler (installed by ray.init) ran during the start-up
+            if exc.code == signal.SIGTERM:
+                raise stopping.Terminated() from None
+            raise
+        finally:
+            signal.signal(signal.SIGTERM, ours)  # ray.init put sys.exit(15) there: SIGTERM stops as Ctrl-C
         collector.set_seed(args.seed)
         collector.update_policy_weights_()  # version 0 to every remote collector
         print(
@@ -252,7 +279,6 @@ def main(argv: list[str] | None = None) -> int:
             f"({'ManiSkillEnv(batch_size=[])' if args.num_envs == 1 else f'ManiSkillEnv(num_envs={args.num_envs})'}"
             f" -> EpisodeMetrics), start-up {time.perf_counter() - t0:.1f} s"
         )
-        frames = episodes = successes = 0
         t1 = time.perf_counter()
         for i, batch in enumerate(collector):
             s = summarize(batch)
@@ -276,13 +302,25 @@ def main(argv: list[str] | None = None) -> int:
         print(f"episodes finished {episodes}")
         print(f"success {successes}/{episodes}" + (f" ({100 * successes / episodes:.1f} %)" if episodes else ""))
         print("remote collectors used the pushed weights: " + ("yes" if ok else "NO"))
+    except KeyboardInterrupt as err:  # Ctrl-C, or SIGTERM (stopping.interruptible)
+        wall = time.perf_counter() - t1
+        print(
+            f"{stopping.said(err)} after {frames} frames ({episodes} episodes finished, {successes} successes, "
+            f"{wall:.1f} s): shutting the collector and Ray down",
+            flush=True,
+        )
+        return stopping.exit_status(err)
     finally:
-        if collector is not None:
-            collector.shutdown()
-        import ray
+        try:
+            with stopping.uninterrupted():  # a second signal waits until the actors and Ray are down
+                if collector is not None:
+                    collector.shutdown()
+                import ray
 
-        if ray.is_initialized():
-            ray.shutdown()
+                if ray.is_initialized():
+                    ray.shutdown()
+        except KeyboardInterrupt:  # that second signal, raised once everything is down: nothing more to stop
+            pass
     return 0 if ok else 1
 
 

@@ -26,6 +26,10 @@ hangs once SAPIEN is loaded in the parent. forkserver (like spawn) re-imports
 this file in the workers, hence the ``if __name__ == "__main__"`` guard and
 the module-level env factory.
 
+Ctrl-C and SIGTERM stop the evaluation: the script prints the averages of the episodes finished so far
+and how many they are, closes its vector env (the workers ignore SIGINT and finish their step; a worker
+that a signal killed is terminated) and exits 130 (SIGINT) or 143 (SIGTERM), without a traceback.
+
 Usage::
 
     python examples/evaluate_gym.py --env-id PickCube-v1 --num-envs 4 --episodes 8
@@ -40,12 +44,18 @@ from __future__ import annotations
 import argparse
 import functools
 import multiprocessing
+import signal
 import sys
 import time
+import warnings
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
+
+import stopping
+
+CLOSE_TIMEOUT_S = 30.0  # a pending step of the workers may finish before they close; then they are terminated
 
 
 def make_env(
@@ -57,16 +67,18 @@ def make_env(
     render: bool = False,
 ) -> gym.Env:
     """One evaluation env, built inside a vector-env worker (hence module-level and picklable)."""
-    import warnings
-
+    if multiprocessing.parent_process() is not None:
+        # A worker: Ctrl-C reaches the whole process group, and the main process stops the evaluation and
+        # closes the workers (gymnasium's worker would report a KeyboardInterrupt as its error).
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
     import mani_skill.envs  # noqa: F401  (registers the tasks in the worker)
+
+    from maniskill_torchrl._internal.rendering import quiet_maniskill
 
     # was: from mani_skill.utils.wrappers.action_repeat import ActionRepeatWrapper
     #      from mani_skill.utils.wrappers.gymnasium import CPUGymWrapper
     from maniskill_torchrl.wrappers.action_repeat import ActionRepeatWrapper
     from maniskill_torchrl.wrappers.gymnasium import CPUGymWrapper
-
-    from maniskill_torchrl._internal.rendering import quiet_maniskill
 
     warnings.filterwarnings("ignore", message=".*precision lowered by casting.*")
     # In every worker process (and gymnasium's dummy env in this one): ManiSkill's notes that say nothing
@@ -89,15 +101,39 @@ def make_env(
     return CPUGymWrapper(env, ignore_terminations=True, record_metrics=True)
 
 
-def evaluate(args: argparse.Namespace) -> list[dict[str, Any]]:
-    """Runs ``args.episodes`` episodes over ``args.num_envs`` envs; returns one record per episode."""
+def close_envs(envs: gym.vector.VectorEnv) -> None:
+    """Closes ``envs``, also in the middle of a step (after Ctrl-C or SIGTERM): the pending step is waited
+    for (``CLOSE_TIMEOUT_S`` at most), then the workers close; workers that a signal killed, or that do
+    not answer, are terminated. Either way no process or pipe is left."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*Calling `close` while waiting for a pending call.*")
+        try:
+            envs.close(timeout=CLOSE_TIMEOUT_S)
+        except (Exception, KeyboardInterrupt):  # a dead worker's pipe (EOFError), a timeout, a second signal
+            # What close(terminate=True) does, without first waiting again for the step that failed.
+            for process in envs.processes:
+                if process.is_alive():
+                    process.terminate()
+            for pipe in envs.parent_pipes:
+                if pipe is not None:
+                    pipe.close()
+            for process in envs.processes:
+                process.join()
+            envs.closed = True
+
+
+def evaluate(args: argparse.Namespace, episodes: list[dict[str, Any]] | None = None) -> list[dict[str, Any]]:
+    """Runs ``args.episodes`` episodes over ``args.num_envs`` envs; returns one record per episode.
+
+    The records are appended to ``episodes`` (a new list by default) as the episodes finish: after a
+    ``KeyboardInterrupt`` (Ctrl-C, SIGTERM) it holds the finished ones."""
+    episodes = [] if episodes is None else episodes
     thunk = functools.partial(make_env, args.env_id, args.max_episode_steps, args.obs_mode)
     envs = gym.vector.AsyncVectorEnv([thunk] * args.num_envs, context="forkserver")
     try:
         envs.action_space.seed(args.seed)
         obs, _ = envs.reset(seed=args.seed)  # sub-env i is seeded with seed + i
         zero = np.zeros(envs.action_space.shape, dtype=envs.action_space.dtype)
-        episodes: list[dict[str, Any]] = []
         while len(episodes) < args.episodes:
             action = zero if args.policy == "zero" else envs.action_space.sample()
             obs, reward, terminated, truncated, infos = envs.step(action)
@@ -117,15 +153,18 @@ def evaluate(args: argparse.Namespace) -> list[dict[str, Any]]:
                 episodes.append(rec)
                 print(_format(len(episodes), rec), flush=True)
     finally:
-        envs.close()
+        close_envs(envs)
     return episodes
 
 
 METRICS = ("success_once", "success_at_end", "fail_once", "fail_at_end", "return", "episode_len")
 
 
-def evaluate_checkpoint(args: argparse.Namespace, ckpt: dict[str, Any]) -> list[dict[str, Any]]:
-    """The checkpoint's policy over ``args.episodes`` episodes, ``args.num_envs`` at a time.
+def evaluate_checkpoint(
+    args: argparse.Namespace, ckpt: dict[str, Any], episodes: list[dict[str, Any]] | None = None
+) -> list[dict[str, Any]]:
+    """The checkpoint's policy over ``args.episodes`` episodes, ``args.num_envs`` at a time (appended to
+    ``episodes`` as each round finishes, as in :func:`evaluate`).
 
     Episodes run in rounds of ``num_envs``: each round starts with
     ``envs.reset(seed=args.seed + first)`` (sub-env ``i`` gets ``seed + first + i``), so
@@ -142,7 +181,7 @@ def evaluate_checkpoint(args: argparse.Namespace, ckpt: dict[str, Any]) -> list[
     try:
         specs = specs_from_spaces(envs.single_observation_space, envs.single_action_space)
         act = numpy_policy(policy_from_checkpoint(ckpt, specs, args.control_mode))
-        episodes: list[dict[str, Any]] = []
+        episodes = [] if episodes is None else episodes
         videos: dict[int, list[np.ndarray]] = {}  # episode index -> frames
         for first in range(0, args.episodes, args.num_envs):
             recording = [i for i in range(args.num_envs) if first + i < min(args.video_episodes, args.episodes)]
@@ -175,7 +214,7 @@ def evaluate_checkpoint(args: argparse.Namespace, ckpt: dict[str, Any]) -> list[
             _write_video(args.video, frames, fps)
             print(f"video: {args.video} ({len(videos)} episodes, {len(frames)} frames, {fps} fps)")
     finally:
-        envs.close()
+        close_envs(envs)
     return episodes
 
 
@@ -302,9 +341,24 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    episodes: list[dict[str, Any]] = []  # the finished episodes, also after Ctrl-C / SIGTERM
+    with stopping.interruptible():  # SIGTERM as Ctrl-C: the averages so far are printed, then exit 143 (130)
+        try:
+            return _main(args, episodes)
+        except KeyboardInterrupt as err:
+            stopped = err
+    if args.backend == "torchrl":  # evaluate_policy gives its averages at the end only
+        print(f"{stopping.said(stopped)}: evaluation stopped before its averages (--backend torchrl)")
+        return stopping.exit_status(stopped)
+    print(f"{stopping.said(stopped)} after {len(episodes)} of {args.episodes} episodes: the averages so far")
+    print_averages(episodes)
+    return stopping.exit_status(stopped)
+
+
+def _main(args: argparse.Namespace, episodes: list[dict[str, Any]]) -> int:
     t0 = time.perf_counter()
     if args.checkpoint is None:
-        episodes = evaluate(args)
+        evaluate(args, episodes)
     else:
         import torch
 
@@ -329,7 +383,7 @@ def main(argv: list[str] | None = None) -> int:
                         print(f"avg {key}: {res[key]:.4f}")
                 print(f"wall time: {time.perf_counter() - t0:.1f} s")
                 return 0
-            episodes = evaluate_checkpoint(args, ckpt)
+            evaluate_checkpoint(args, ckpt, episodes)
         except CheckpointError as exc:
             print(f"evaluate_gym.py: error: {exc}", file=sys.stderr)
             return 2

@@ -17,6 +17,9 @@ the two traces side by side and says whether they are identical: every
 observation, reward, flag and info entry (``info["episode"]`` metrics
 included), value for value and type for type. Exit code 0 if identical, 1 if not.
 
+Ctrl-C and SIGTERM stop it: it says how far it got (which run, at which step), compares the records
+both runs have so far, closes the env and exits 130 (SIGINT) or 143 (SIGTERM), without a traceback.
+
 Usage::
 
     python examples/migrate_from_maniskill.py --env-id PickCube-v1 --steps 30 --repeat 2
@@ -35,20 +38,27 @@ import gymnasium as gym
 import mani_skill.envs  # noqa: F401  (registers the tasks)
 import numpy as np
 
+import stopping
+
 # The two modules compared. (`import mani_skill.utils.wrappers as m` would resolve the
 # attribute chain, and `mani_skill.utils` is shadowed there by `mani_skill.envs.utils`.)
 maniskill_wrappers = importlib.import_module("mani_skill.utils.wrappers")
 torchrl_wrappers = importlib.import_module("maniskill_torchrl.wrappers")
+LEFT, RIGHT = "mani_skill.utils.wrappers", "maniskill_torchrl.wrappers"
 
 warnings.filterwarnings("ignore", message=".*precision lowered by casting.*")
 
 
-def run(wrappers: ModuleType, args: argparse.Namespace) -> list[dict[str, Any]]:
+def run(
+    wrappers: ModuleType, args: argparse.Namespace, trace: list[dict[str, Any]] | None = None
+) -> list[dict[str, Any]]:
     """The seeded loop, with ``ActionRepeatWrapper`` / ``CPUGymWrapper`` taken from ``wrappers``.
 
     Every reset is seeded (``seed + episode``): an unseeded reset of a second env
-    in the same process would not reproduce the first one's.
+    in the same process would not reproduce the first one's. The records are appended to
+    ``trace`` (a new list by default) as they come: after a ``KeyboardInterrupt`` it holds those so far.
     """
+    trace = [] if trace is None else trace
     env = gym.make(
         args.env_id,
         num_envs=1,
@@ -58,12 +68,21 @@ def run(wrappers: ModuleType, args: argparse.Namespace) -> list[dict[str, Any]]:
     )
     if args.repeat > 1:
         env = wrappers.ActionRepeatWrapper(env, repeat=args.repeat)
-    env = wrappers.CPUGymWrapper(env, ignore_terminations=args.ignore_terminations, record_metrics=True)
+    try:
+        _loop(
+            wrappers.CPUGymWrapper(env, ignore_terminations=args.ignore_terminations, record_metrics=True), args, trace
+        )
+    finally:
+        env.close()
+    return trace
+
+
+def _loop(env: gym.Env, args: argparse.Namespace, trace: list[dict[str, Any]]) -> None:
     rng = np.random.default_rng(args.seed)
     space = env.action_space
     episode = 0
     obs, info = env.reset(seed=args.seed)
-    trace = [{"step": 0, "kind": "reset", "obs": obs, "info": info}]
+    trace.append({"step": 0, "kind": "reset", "obs": obs, "info": info})
     for t in range(1, args.steps + 1):
         action = rng.uniform(space.low, space.high).astype(space.dtype)
         obs, reward, terminated, truncated, info = env.step(action)
@@ -82,8 +101,6 @@ def run(wrappers: ModuleType, args: argparse.Namespace) -> list[dict[str, Any]]:
             episode += 1
             obs, info = env.reset(seed=args.seed + episode)
             trace.append({"step": t, "kind": "reset", "obs": obs, "info": info})
-    env.close()
-    return trace
 
 
 def _typename(x: Any) -> str:
@@ -136,30 +153,61 @@ def main(argv: list[str] | None = None) -> int:
     if args.steps < 1 or args.repeat < 1 or args.max_episode_steps < 1:
         p.error("--steps, --repeat and --max-episode-steps must be >= 1")
 
-    theirs = run(maniskill_wrappers, args)
-    ours = run(torchrl_wrappers, args)
-
-    left, right = "mani_skill.utils.wrappers", "maniskill_torchrl.wrappers"
-    width = max(len(_fmt(r)) for r in theirs + ours) + 2
+    theirs: list[dict[str, Any]] = []
+    ours: list[dict[str, Any]] = []
+    runs = ((LEFT, maniskill_wrappers, theirs), (RIGHT, torchrl_wrappers, ours))
+    where = "before run 1/2"
+    with stopping.interruptible():  # SIGTERM as Ctrl-C: say how far it got, then exit 143 (130)
+        try:
+            for n, (name, wrappers, trace) in enumerate(runs):
+                where = f"in run {n + 1}/2 ({name})"
+                print(f"run {n + 1}/2: {name}, {args.steps} steps", flush=True)
+                run(wrappers, args, trace)
+            where = "while comparing"
+            return 0 if compare(args, theirs, ours) else 1
+        except KeyboardInterrupt as err:
+            stopped = err
+    last = {"theirs": theirs[-1]["step"] if theirs else 0, "ours": ours[-1]["step"] if ours else 0}
     print(
-        f"{args.env_id}: ActionRepeatWrapper(repeat={args.repeat}) -> CPUGymWrapper(record_metrics=True, "
-        f"ignore_terminations={args.ignore_terminations}), {args.steps} seeded random steps"
+        f"{stopping.said(stopped)} {where}: {LEFT} reached step {last['theirs']} of {args.steps}, "
+        f"{RIGHT} step {last['ours']}"
     )
-    print(f"{'step':>4}  {left:<{width}}{right:<{width}}same")
+    if ours:
+        same = compare(args, theirs, ours, partial=True)
+        print(f"identical so far: {same} ({min(len(theirs), len(ours))} records compared)")
+    else:
+        print("identical so far: not compared (the second run had not started)")
+    return stopping.exit_status(stopped)
+
+
+def compare(
+    args: argparse.Namespace, theirs: list[dict[str, Any]], ours: list[dict[str, Any]], partial: bool = False
+) -> bool:
+    """Prints the two traces side by side (``partial``: only their differences, over the records both
+    have) and says whether they are identical."""
     diffs: list[str] = []
+    rows: list[str] = []
+    width = max(len(_fmt(r)) for r in theirs + ours) + 2
     for a, b in zip(theirs, ours):
         d = differences(a, b, f"step {a['step']} {a['kind']}")
         diffs += d
-        print(f"{a['step']:>4}  {_fmt(a):<{width}}{_fmt(b):<{width}}{'yes' if not d else 'NO'}")
-    if len(theirs) != len(ours):
-        diffs.append(f"trace lengths differ: {len(theirs)} vs {len(ours)}")
-    identical = not diffs
-    print(
-        f"identical: {identical} ({len(theirs)} records compared: observations, rewards, flags, infos, info['episode'])"
-    )
+        rows.append(f"{a['step']:>4}  {_fmt(a):<{width}}{_fmt(b):<{width}}{'yes' if not d else 'NO'}")
+    if not partial:
+        print(
+            f"{args.env_id}: ActionRepeatWrapper(repeat={args.repeat}) -> CPUGymWrapper(record_metrics=True, "
+            f"ignore_terminations={args.ignore_terminations}), {args.steps} seeded random steps"
+        )
+        print(f"{'step':>4}  {LEFT:<{width}}{RIGHT:<{width}}same")
+        print("\n".join(rows))
+        if len(theirs) != len(ours):
+            diffs.append(f"trace lengths differ: {len(theirs)} vs {len(ours)}")
+        print(
+            f"identical: {not diffs} ({len(theirs)} records compared: observations, rewards, flags, infos, "
+            "info['episode'])"
+        )
     for d in diffs[:20]:
         print(f"  {d}")
-    return 0 if identical else 1
+    return not diffs
 
 
 if __name__ == "__main__":

@@ -7,7 +7,8 @@ reaching the remote side (policy version and actions), a remote collector that c
 env factory raises, or its process exits) raising a Ray error within a time limit, and no
 process of the test (Ray's head processes, its workers, the env workers under them) left
 after ``collector.shutdown()`` and ``ray.shutdown()``. The last test shuts Ray down: keep it
-last. About a minute on 2 cores, mostly actor start-up (each imports torch, TorchRL, ManiSkill).
+last. About 2 minutes on 2 cores, mostly actor start-up (each imports torch, TorchRL, ManiSkill); before
+them, the script itself stopped by Ctrl-C and by SIGTERM (each with its own Ray), about 1.5 minutes more.
 """
 
 from __future__ import annotations
@@ -15,6 +16,9 @@ from __future__ import annotations
 import functools
 import importlib.util
 import os
+import re
+import signal
+import subprocess
 import sys
 import threading
 import time
@@ -86,6 +90,53 @@ def _still_alive(procs: set[tuple[int, int]]) -> dict[int, str]:
         for pid, start in procs
         if pid in table and table[pid][2] == start and table[pid][1] != "Z"
     }
+
+
+# ------------------------------------------------------------------ Ctrl-C and SIGTERM (the script)
+@pytest.mark.parametrize(("sig", "whom"), [(signal.SIGINT, "group"), (signal.SIGTERM, "process")])
+def test_a_stopped_script_prints_its_frames_shuts_ray_down_and_exits_conventionally(tmp_path, sig, whom) -> None:
+    """``examples/distributed_ray.py`` as a user starts it, in its own session, stopped after its second
+    batch: Ctrl-C reaches the whole process group (as from a terminal), SIGTERM the script alone (``kill PID``;
+    ``ray.init`` had replaced its handler). It prints the frames so far, leaves no process (its group, Ray's
+    head and workers) and exits 130 / 143 without a traceback. Runs before the module's own Ray instance."""
+    before = _ray_named(_proc_table())
+    cmd = [sys.executable, str(ROOT / "examples" / "distributed_ray.py"), "--batches", "1000"]
+    cmd += ["--frames-per-batch", "100", "--max-episode-steps", str(EPISODE)]
+    log = tmp_path / "log.txt"
+    with log.open("w") as out:
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        proc = subprocess.Popen(
+            cmd, stdout=out, stderr=subprocess.STDOUT, cwd=tmp_path, env=env, start_new_session=True
+        )
+    try:
+        deadline = time.monotonic() + 240
+        while "batch 1:" not in log.read_text() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.3)
+        assert "batch 1:" in log.read_text(), log.read_text()[-3000:]
+        os.killpg(proc.pid, sig) if whom == "group" else proc.send_signal(sig)
+        rc = proc.wait(timeout=TIME_LIMIT_S)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    text = log.read_text()
+    assert rc == 128 + sig, f"exit {rc}\n{text[-3000:]}"
+    said = "Ctrl-C" if sig == signal.SIGINT else "SIGTERM"
+    found = re.search(rf"{said} after (\d+) frames \((\d+) episodes finished", text)
+    assert found and int(found.group(1)) >= 200, text[-3000:]
+    assert "Traceback" not in text and "leaked" not in text, text[-3000:]
+    end, left = time.monotonic() + 30, None
+    while time.monotonic() < end:
+        left = _still_alive(_ray_named(_proc_table()) - before)
+        try:
+            os.killpg(proc.pid, 0)
+            group = True
+        except ProcessLookupError:
+            group = False
+        if not left and not group:
+            break
+        time.sleep(0.5)
+    assert not left and not group, f"left running: {left}, its group: {group}\n{text[-3000:]}"
 
 
 # ------------------------------------------------------------------------------- fixtures
