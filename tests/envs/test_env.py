@@ -708,18 +708,24 @@ def test_physx_gpu_download_failure_says_what_to_do(monkeypatch):
 
 
 def test_pickling_says_what_to_pickle_instead():
-    """An env holds a live sim: pickling it (a collector given an instance, deepcopy) names the
-    factories that pickle, instead of an error about a local lambda."""
+    """A ManiSkillEnv pickles (and deep-copies) as its constructor: a new env of the same arguments (issue 62). A
+    ManiSkillWrapper around a gym env holds a live sim nothing can rebuild: pickling it (a collector given an
+    instance, deepcopy) names the factories that pickle, instead of an error about a local lambda."""
     import copy
     import functools
     import pickle
 
     env = ManiSkillEnv("PickCube-v1", obs_mode="state")
+    wrapper = ManiSkillWrapper(make_gym_env("PickCube-v1", obs_mode="state"))
     try:
         for dump in (pickle.dumps, copy.deepcopy):
-            with pytest.raises(TypeError, match=r"cannot be pickled.*functools.partial\(ManiSkillEnv"):
-                dump(env)
+            with pytest.raises(TypeError, match=r"cannot pickle 'ManiSkillWrapper'.*functools.partial\(ManiSkillEnv"):
+                dump(wrapper)
+        copied = copy.deepcopy(env)
+        assert type(copied) is ManiSkillEnv and copied is not env and copied.batch_size == env.batch_size
+        copied.close()
         make = pickle.loads(pickle.dumps(functools.partial(ManiSkillEnv, "PickCube-v1", obs_mode="state")))
         assert make.func is ManiSkillEnv
     finally:
         env.close()
+        wrapper.close()
