@@ -5,7 +5,7 @@ Each pair does one wrapper's job on one step's outputs, the env's step left out 
 - ``flatten_rgbd``: ``FlattenRGBDObservationWrapper.observation`` (on a fresh top-level copy of the raw
   observation dict, which it pops from) against ``FlattenRGBD._call`` on the env's TensorDict of that step
   (PushCube-v1, ``obs_mode="rgbd"``, one camera at ``--size`` pixels, one CPU env);
-- ``flatten_action``: ``FlattenActionSpaceWrapper.action`` against ``FlattenAction._inv_call`` (a new
+- ``flatten_action``: ``FlattenActionSpaceWrapper.action`` against ``FlattenActionSpace._inv_call`` (a new
   TensorDict holding the flat action each call, as a step's input is), TwoRobotPickCube-v1;
 - ``frame_stack``: ``FrameStack.step``'s stacking (append, then ``observation``) against the recipe,
   ``UnsqueezeTransform`` + ``CatFrames`` (``Compose._call``), PickCube-v1 state, 3 frames.
@@ -61,12 +61,12 @@ def _flatten_action(calls: int) -> list[Contender]:
     from torchrl.envs import TransformedEnv
 
     from maniskill_torchrl import ManiSkillEnv
-    from maniskill_torchrl.transforms import FlattenAction
+    from maniskill_torchrl.transforms import FlattenActionSpace
 
     wrapper = FlattenActionSpaceWrapper(
         gym.make("TwoRobotPickCube-v1", num_envs=1, obs_mode="state", sim_backend="cpu", render_backend="cpu")
     )
-    env = TransformedEnv(ManiSkillEnv("TwoRobotPickCube-v1", obs_mode="state", sim_backend="cpu"), FlattenAction())
+    env = TransformedEnv(ManiSkillEnv("TwoRobotPickCube-v1", obs_mode="state", sim_backend="cpu"), FlattenActionSpace())
     _ = env.action_spec  # the layout, once
     transform = env.transform
     flat = torch.zeros(1, 16)
@@ -81,7 +81,7 @@ def _flatten_action(calls: int) -> list[Contender]:
             transform._inv_call(TensorDict({"action": flat}, [1]))
         return calls
 
-    return [Contender("flatten_action: ManiSkill", theirs), Contender("flatten_action: FlattenAction", ours)]
+    return [Contender("flatten_action: ManiSkill", theirs), Contender("flatten_action: FlattenActionSpace", ours)]
 
 
 def _frame_stack(calls: int) -> list[Contender]:

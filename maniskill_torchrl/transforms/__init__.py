@@ -5,7 +5,7 @@ from maniskill_torchrl.transforms.action_repeat import ActionRepeat
 from maniskill_torchrl.transforms.cpu_unbatch import CPUUnbatch
 from maniskill_torchrl.transforms.env_states import EnvStates
 from maniskill_torchrl.transforms.episode_metrics import EpisodeMetrics
-from maniskill_torchrl.transforms.flatten_action import FlattenAction
+from maniskill_torchrl.transforms.flatten_action_space import FlattenActionSpace
 from maniskill_torchrl.transforms.flatten_rgbd import FlattenRGBD
 from maniskill_torchrl.transforms.sparse_reward import SparseReward
 from maniskill_torchrl.transforms.terminations import IgnoreTerminations
@@ -15,7 +15,7 @@ __all__ = [
     "CPUUnbatch",
     "EnvStates",
     "EpisodeMetrics",
-    "FlattenAction",
+    "FlattenActionSpace",
     "FlattenRGBD",
     "IgnoreTerminations",
     "SparseReward",

@@ -13,7 +13,7 @@ import maniskill_torchrl._internal.episode_stats as episode_stats_module
 import maniskill_torchrl.pipeline as pipeline_module
 import maniskill_torchrl.transforms.action_repeat as action_repeat_module
 import maniskill_torchrl.transforms.env_states as env_states_module
-import maniskill_torchrl.transforms.flatten_action as flatten_action_module
+import maniskill_torchrl.transforms.flatten_action_space as flatten_action_space_module
 from maniskill_torchrl import ActionRepeat, EpisodeMetrics, IgnoreTerminations, ManiSkillEnv
 from maniskill_torchrl.pipeline import make_env
 
@@ -63,7 +63,7 @@ def test_bad_repeat_raises_before_building(bad, error):
         episode_stats_module,
         assertions_module,
         env_states_module,
-        flatten_action_module,
+        flatten_action_space_module,
     ],
 )
 def test_docstring_examples(module):

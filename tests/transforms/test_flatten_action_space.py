@@ -1,4 +1,4 @@
-"""FlattenAction against ManiSkill's FlattenActionSpaceWrapper on a two-robot task, bit for bit: the flat
+"""FlattenActionSpace against ManiSkill's FlattenActionSpaceWrapper on a two-robot task, bit for bit: the flat
 action's bounds, and the episodes a flat action gives (one env, and the batched CPU env)."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from mani_skill.utils.wrappers import FlattenActionSpaceWrapper
 from torchrl.envs import TransformedEnv, check_env_specs
 
 from maniskill_torchrl import ManiSkillEnv
-from maniskill_torchrl.transforms import FlattenAction
+from maniskill_torchrl.transforms import FlattenActionSpace
 from support.helpers import close_envs, make_gym_env
 
 TASK, EPISODE = "TwoRobotPickCube-v1", 4
@@ -23,7 +23,7 @@ def _actions(n: int, steps: int) -> torch.Tensor:
 def test_the_flat_action_steps_as_maniskills_wrapper():
     ref = FlattenActionSpaceWrapper(make_gym_env(TASK, obs_mode="state", max_episode_steps=EPISODE))
     env = TransformedEnv(
-        ManiSkillEnv(TASK, obs_mode="state", sim_backend="cpu", max_episode_steps=EPISODE), FlattenAction()
+        ManiSkillEnv(TASK, obs_mode="state", sim_backend="cpu", max_episode_steps=EPISODE), FlattenActionSpace()
     )
     try:
         spec = env.action_spec
@@ -47,7 +47,8 @@ def test_the_flat_action_steps_as_maniskills_wrapper():
 
 def test_check_env_specs_and_the_batched_cpu_env():
     env = TransformedEnv(
-        ManiSkillEnv(TASK, num_envs=2, obs_mode="state", sim_backend="cpu", max_episode_steps=EPISODE), FlattenAction()
+        ManiSkillEnv(TASK, num_envs=2, obs_mode="state", sim_backend="cpu", max_episode_steps=EPISODE),
+        FlattenActionSpace(),
     )
     refs = [
         FlattenActionSpaceWrapper(make_gym_env(TASK, obs_mode="state", max_episode_steps=EPISODE)) for _ in range(2)
@@ -69,7 +70,7 @@ def test_check_env_specs_and_the_batched_cpu_env():
 
 
 def test_a_box_action_needs_no_flattening():
-    env = TransformedEnv(ManiSkillEnv("PickCube-v1", obs_mode="state", sim_backend="cpu"), FlattenAction())
+    env = TransformedEnv(ManiSkillEnv("PickCube-v1", obs_mode="state", sim_backend="cpu"), FlattenActionSpace())
     try:
         with pytest.raises(TypeError, match="already one"):
             _ = env.action_spec

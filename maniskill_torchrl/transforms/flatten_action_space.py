@@ -7,10 +7,10 @@ from tensordict import NestedKey, TensorDict, TensorDictBase
 from torchrl.data import Bounded, Composite, TensorSpec
 from torchrl.envs import Transform
 
-__all__ = ["FlattenAction"]
+__all__ = ["FlattenActionSpace"]
 
 
-class FlattenAction(Transform):
+class FlattenActionSpace(Transform):
     """One flat ``"action"`` Box for an env whose action is a Dict of Boxes (ManiSkill's multi-agent tasks,
     ``TwoRobotPickCube-v1``: ``("action", "panda_wristcam-0")`` and ``("action", "panda_wristcam-1")``).
 
@@ -18,6 +18,8 @@ class FlattenAction(Transform):
     agents' Boxes side by side in the Dict's order; on the way in, this transform cuts it back into each
     agent's entry (the inverse), so ManiSkill steps exactly what the wrapper would give it. The action spec
     is the Boxes' bounds concatenated. As ManiSkill's wrapper, it takes a flat Dict of 1-D Boxes.
+    TorchRL's own :class:`~torchrl.envs.transforms.FlattenAction` does something else: it flattens adjacent
+    dims of one action tensor.
 
     Args:
         action_key (NestedKey): the Dict action's key. Defaults to ``"action"``.
@@ -25,8 +27,8 @@ class FlattenAction(Transform):
     Examples:
         >>> from torchrl.envs import TransformedEnv
         >>> from maniskill_torchrl import ManiSkillEnv
-        >>> from maniskill_torchrl.transforms import FlattenAction
-        >>> env = TransformedEnv(ManiSkillEnv("TwoRobotPickCube-v1", obs_mode="state"), FlattenAction())
+        >>> from maniskill_torchrl.transforms import FlattenActionSpace
+        >>> env = TransformedEnv(ManiSkillEnv("TwoRobotPickCube-v1", obs_mode="state"), FlattenActionSpace())
         >>> env.action_spec.shape
         torch.Size([1, 16])
         >>> env.rollout(2)["next", "observation"].shape
@@ -43,12 +45,14 @@ class FlattenAction(Transform):
         actions = input_spec["full_action_spec"].get(self.action_key)
         if not isinstance(actions, Composite):
             raise TypeError(
-                f"FlattenAction flattens a Dict action (one Box per agent); {self.action_key!r} is already one "
+                f"FlattenActionSpace flattens a Dict action (one Box per agent); {self.action_key!r} is already one "
                 f"{type(actions).__name__}: the transform is not needed."
             )
         specs = [actions[name] for name in actions.keys()]
         if any(isinstance(spec, Composite) or spec.ndim != actions.ndim + 1 for spec in specs):
-            raise ValueError("FlattenAction takes a flat Dict of 1-D Boxes, as ManiSkill's FlattenActionSpaceWrapper.")
+            raise ValueError(
+                "FlattenActionSpace takes a flat Dict of 1-D Boxes, as ManiSkill's FlattenActionSpaceWrapper does."
+            )
         self._names = list(actions.keys())
         self._widths = [spec.shape[-1] for spec in specs]
         low = torch.cat([spec.space.low for spec in specs], -1)
