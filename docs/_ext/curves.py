@@ -96,6 +96,21 @@ def draw_ppo(out: Path, tmp: Path) -> Path:
     return png
 
 
+def draw_ppo_rgb(out: Path, tmp: Path) -> Path:
+    """PPO from 64-px rgb on PushCube-v1, 2 cores (issue 63): 20 seeded episodes per evaluation."""
+    from benchmarks import plot_ppo
+
+    rows = read_csv(ROOT / "benchmarks" / "ppo" / "pushcube_rgb_cpu.csv")
+    log = _write_jsonl([{**r, "episodes": 20} for r in rows], tmp / "ppo_rgb.jsonl")
+    png = out / "ppo_pushcube_rgb.png"
+    title = "PPO from 64-px rgb on PushCube-v1 (pd_joint_delta_pos), CPU sim, 2 shared cores, 2026-12-02"
+    fig = _quiet(plot_ppo.main, [str(log), "--out", str(png), "--title", title, "--target", "0.8"])
+    for ax in fig.axes:
+        _thousands(ax)
+    fig.savefig(png, dpi=110)
+    return png
+
+
 def _draw_rl_runs(out: Path, tmp: Path, png_name: str, runs: list[tuple[str, str]], title: str):
     """RL runs side by side, one evaluation per CSV row (``runs``: label, CSV under benchmarks/),
     drawn by plot_runs; returns the figure, still open, for the caller's touches."""
@@ -359,7 +374,7 @@ def draw_all(out_dir: Path) -> list[Path]:
     out_dir.mkdir(parents=True, exist_ok=True)
     pngs = []
     with tempfile.TemporaryDirectory(prefix="maniskill_torchrl_curves_") as tmp:
-        for draw in (draw_ppo, draw_ppo_trainer, draw_sac, draw_rlpd, draw_bc):
+        for draw in (draw_ppo, draw_ppo_trainer, draw_ppo_rgb, draw_sac, draw_rlpd, draw_bc):
             pngs.append(draw(out_dir, Path(tmp)))
             plt.close("all")
     data = ROOT / "benchmarks" / "collection"

@@ -31,6 +31,7 @@ def test_every_picture_drawn(pngs):
     assert names == {
         "ppo_pullcube.png",
         "ppo_pullcube_trainer.png",
+        "ppo_pushcube_rgb.png",
         "sac_pushcube.png",
         "rlpd_pickcube.png",
         "bc.png",
