@@ -58,7 +58,7 @@ SLOW_FIRST = (
     "wrappers/test_wrappers.py",  # 71
     "envs/test_env.py",  # 63
     "engines/test_cpu_vector.py",  # 51
-    "engines/test_async_edges.py",  # 42
+    "engines/test_async_edges.py",  # 20
     "engines/test_async_model.py",  # 35
     "data/test_demonstrations.py",  # 31
     "envs/test_unbatched_env.py",  # 31
