@@ -533,7 +533,9 @@ class PoolMachine(RuleBasedStateMachine):
         if transitions is not None:
             keys = [set(self.envs[i].pending.sent.keys(True, True)) for i in got]
             common = set.intersection(*keys)
-            mixed = any(k != common for k in keys)
+            # the pool's warning leaves "env_index" out: a send by the "env_index" entry and one by argument
+            # are the same data (the pool sets the entry on every transition)
+            mixed = any(k - {"env_index"} != common - {"env_index"} for k in keys)
             for j, i in enumerate(got):
                 self.world.stats["checked"] += 1
                 p = self.envs[i].pending
