@@ -362,7 +362,8 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
                     group["lr"] = args.lr * (1.0 - frames / total_frames)
             frames += batch.numel()
             record = {"iteration": it, "frames": frames, **episode_stats(batch)}
-            updates, losses = ppo_update(args, batch, advantage, buffer, loss_module, optim, updates_per_epoch)
+            with stopping.uninterrupted():  # as sac_torchrl.py: a signal waits for the update's end
+                updates, losses = ppo_update(args, batch, advantage, buffer, loss_module, optim, updates_per_epoch)
             collector.update_policy_weights_()
             record.update(
                 loss_objective=losses["loss_objective"].item(),

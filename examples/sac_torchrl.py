@@ -248,10 +248,13 @@ def train(args: argparse.Namespace) -> dict[str, Any]:
             t = time.perf_counter()
             losses = None
             if frames >= args.learning_starts:
-                for _ in range(max(1, round(args.utd * batch.numel()))):
-                    losses = sac_update(loss, optim, buffer.sample().to(device))
-                    target.step()
-                    updates += 1
+                # a signal waits for the updates' end: raised inside TorchRL's functional calls, a
+                # KeyboardInterrupt comes out as another error (tensordict's to_module exit)
+                with stopping.uninterrupted():
+                    for _ in range(max(1, round(args.utd * batch.numel()))):
+                        losses = sac_update(loss, optim, buffer.sample().to(device))
+                        target.step()
+                        updates += 1
                 collector.update_policy_weights_()
             timing["update_s"] += time.perf_counter() - t
             ended = batch["next", "done"].squeeze(-1)

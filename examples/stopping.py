@@ -41,7 +41,9 @@ def interruptible() -> Iterator[None]:
 
 @contextlib.contextmanager
 def uninterrupted() -> Iterator[None]:
-    """SIGINT and SIGTERM wait until the block ends (a checkpoint being written is never cut short)."""
+    """SIGINT and SIGTERM wait until the block ends: a checkpoint being written is never cut short, and an
+    update is not interrupted inside TorchRL's functional calls (a KeyboardInterrupt raised there comes out
+    of tensordict's ``to_module`` as a ``RuntimeError``)."""
     pending: list[int] = []
     old = {s: signal.signal(s, lambda signum, frame: pending.append(signum)) for s in (signal.SIGINT, signal.SIGTERM)}
     try:

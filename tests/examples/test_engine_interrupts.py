@@ -20,7 +20,11 @@ REPO = Path(__file__).resolve().parents[2]
 
 CTRL_C = textwrap.dedent(
     """
+    import faulthandler
+    import signal
     import sys
+
+    faulthandler.register(signal.SIGUSR1, all_threads=True)  # a hang: the test asks where (err.txt)
     from maniskill_torchrl import AsyncPoolCollector, ManiSkillAsyncEnvPool
 
     if __name__ == "__main__":
@@ -42,7 +46,11 @@ CTRL_C = textwrap.dedent(
 
 LOCKSTEP_CTRL_C = textwrap.dedent(
     """
+    import faulthandler
+    import signal
     import sys
+
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
     import torch
     from maniskill_torchrl import ManiSkillEnv
     from maniskill_torchrl.testing import assert_tensordict_equal
@@ -93,7 +101,12 @@ def _interrupted(tmp_path, script_text: str) -> tuple[str, str]:
             time.sleep(0.2)
         time.sleep(2.0)  # well inside the loop
         os.killpg(proc.pid, signal.SIGINT)
-        proc.wait(timeout=120)
+        try:
+            proc.wait(timeout=120)
+        except subprocess.TimeoutExpired:
+            os.kill(proc.pid, signal.SIGUSR1)  # where it hangs, every thread, into err.txt
+            time.sleep(3)
+            pytest.fail(f"no exit 120 s after Ctrl-C; where the script was:\n{err.read_text()[-6000:]}")
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
