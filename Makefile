@@ -84,8 +84,9 @@ test-ray: setup
 # upstream/ (upstream/README.md): the module, exports, config and TorchRL's test file applied to a copy of the
 # installed torchrl, whose test file then runs in a child process.
 # The model-based test of the asynchronous path (tests/engines/test_async_model.py), its long profile: new random
-# sequences each run, answers received as they come (make test runs its short, derandomized profile; ~5 min). .ci/run
-# runs it.
+# sequences each run, answers received as they come (make test runs its short, derandomized profile; ~5 min). Not in
+# .ci/run: a long run sometimes fails as hypothesis' FlakyStrategyDefinition while shrinking (a finding it cannot
+# replay, answers arriving in another order), not yet traced (issue 59).
 test-model: setup
 	MANISKILL_TORCHRL_MODEL_RUNS=long $(VENV)/bin/python -m pytest -q --durations=5 tests/engines/test_async_model.py $(PYTEST_ARGS)
 
