@@ -193,9 +193,11 @@ class StepInObservation(gym.Wrapper):
         if options and SUB_ENV_STATES in options:
             # The batch's saved states, one row per sub-env being reset: this env takes its own.
             options = dict(options)
-            rows, states = options.pop(SUB_ENV_STATES)
+            rows, states, obs = options.pop(SUB_ENV_STATES)
             k = rows.index(self.index)
             options["reset_to_env_states"] = {"env_states": _map_tensors(states, lambda x: x[k : k + 1])}
+            if obs is not None:  # ManiSkill returns these observations instead of computing them
+                options["reset_to_env_states"]["obs"] = _map_tensors(obs, lambda x: x[k : k + 1])
         obs, info = self.env.reset(seed=seed, options=options)
         return self._pack(obs, info, np.float32(0), False, False), {}
 

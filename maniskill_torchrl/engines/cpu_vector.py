@@ -648,9 +648,10 @@ class CPUVectorEnv:
         seeds = self._seeds(seed, mask)
         states = options.pop("reset_to_env_states", None)
         if states is not None:
-            # ManiSkill's convention: one row of env_states per env being reset, in env order.
-            # Every sub-env being reset gets the rows and picks its own (one message to all).
-            options[SUB_ENV_STATES] = (np.flatnonzero(mask).tolist(), states["env_states"])
+            # ManiSkill's convention: one row of env_states (and of the cached obs, if given) per env
+            # being reset, in env order. Every sub-env being reset gets the rows and picks its own
+            # (one message to all).
+            options[SUB_ENV_STATES] = (np.flatnonzero(mask).tolist(), states["env_states"], states.get("obs"))
         block, local = self._block, self._local
         workers = [i for i in range(self.num_envs - self._first) if mask[self._first + i]]
 

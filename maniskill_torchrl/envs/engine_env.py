@@ -11,7 +11,8 @@ library has.
 - A CPU-sim env on an accelerator (``device="cuda"``) moves each step's host outputs up in one
   non-blocking transfer (:class:`~maniskill_torchrl._internal.host_gather.HostGather`).
 - The hooks of :class:`~maniskill_torchrl.envs.hooks.EnvHooks`: the workers' action repeat
-  (:meth:`~ManiSkillWrapper.request_worker_repeat`) and the host values of what a CPU-sim env on
+  (:meth:`~ManiSkillWrapper.request_worker_repeat`), resets to saved states with their cached
+  observations (:meth:`~ManiSkillWrapper.request_reset_states`) and the host values of what a CPU-sim env on
   an accelerator moved up (:meth:`~ManiSkillWrapper.host_value`).
 - ``frame_skip`` refused for :class:`~maniskill_torchrl.transforms.ActionRepeat`, errors that
   name the fix for a missing action and a closed env, and clear errors where ManiSkill would
@@ -91,6 +92,7 @@ class ManiSkillWrapper(maniskill.ManiSkillWrapper):
 
     _workers: CPUVectorEnv | None = None
     _gather: HostGather | None = None
+    _next_states: tuple | None = None  # request_reset_states' (states, obs), for the next reset
 
     _inference = False
 
@@ -228,6 +230,59 @@ class ManiSkillWrapper(maniskill.ManiSkillWrapper):
             repeat = self._plain_repeat
         if self._workers.repeat != repeat:  # a round trip, only when the repeat changes
             self._workers.set_repeat(repeat)
+
+    def request_reset_states(self, states: TensorDictBase, obs: TensorDictBase | None = None) -> bool:
+        """Makes the next reset a reset to ``states`` (:meth:`reset_to_state`, one row per env
+        being reset, in env order), with ``obs``'s observation entries as its observations where
+        given: ManiSkill's ``reset_to_env_states`` options, which skip the task's episode
+        initialization and, with ``obs``, the observation (camera renders included). The request
+        holds for the next reset only; an explicit ``reset(set_state=True, scene_state=...)``
+        takes precedence over it.
+
+        ``obs`` is not taken (the sim computes the observations) where ManiSkill's write of them
+        into its last observation could reach a tensor this env handed out (outputs not copied: a
+        wrapper of a CPU-sim gym env without inference mode), or with ``from_pixels``."""
+        self._next_states = (states, obs)
+        return True
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDictBase:
+        request, self._next_states = self._next_states, None  # taken first: a failing reset leaves none behind
+        if request is None or kwargs.get("set_state"):
+            return super()._reset(tensordict, **kwargs)
+        states, obs = request
+        kwargs.pop("set_state", None)
+        options = dict(kwargs.pop("options", None) or {})
+        obs = self._maniskill_obs(obs)
+        if obs is not None:
+            options["reset_to_env_states"] = {"obs": obs}
+        state = self._rows_to_states(tensordict, states)
+        return super()._reset(tensordict, set_state=True, scene_state=state, options=options, **kwargs)
+
+    def _rows_to_states(self, tensordict: TensorDictBase | None, states: TensorDictBase) -> TensorDictBase:
+        """The ``[num_envs]`` states of a reset from the rows of the envs it resets (the others' rows unused)."""
+        if self._unbatched:
+            return states[0]
+        reset = tensordict.get("_reset", None) if tensordict is not None else None
+        rows = torch.arange(self.batch_size[0]) if reset is None else reset.reshape(-1).nonzero().squeeze(-1).cpu()
+        if states.batch_size[:1] != rows.shape:
+            raise ValueError(
+                f"request_reset_states: {states.batch_size[0] if states.batch_dims else 0} rows of states for a reset "
+                f"of {rows.numel()} env(s): one row per env being reset."
+            )
+        full = states[torch.zeros(self.batch_size[0], dtype=torch.long, device=states.device)].clone()
+        full[rows.to(states.device)] = states
+        return full
+
+    def _maniskill_obs(self, obs: TensorDictBase | None) -> Any:
+        """ManiSkill's observations (its dict, or the Box observation) from rows of reset tensordicts, or None
+        where they cannot be given (see :meth:`request_reset_states`)."""
+        if obs is None or self._from_pixels or self._pixels_only or not (self._workers is not None or self._copy_out):
+            return None
+        obs = obs.to(self._sim_device)
+        if not self._obs_is_dict:
+            return obs.get("observation")
+        infos = {td_key for _, td_key in self._info_map}
+        return obs.select(*(k for k in self.observation_spec.keys() if k not in infos)).to_dict()
 
     def host_value(self, tensor: torch.Tensor) -> torch.Tensor | None:
         """The host values of ``tensor`` if it is an entry of the last step or reset that came up

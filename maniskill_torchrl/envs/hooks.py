@@ -11,6 +11,7 @@ from __future__ import annotations
 from typing import Protocol, runtime_checkable
 
 import torch
+from tensordict import TensorDictBase
 from torchrl.envs import EnvBase, TransformedEnv
 
 __all__ = ["EnvHooks", "env_hooks"]
@@ -18,8 +19,9 @@ __all__ = ["EnvHooks", "env_hooks"]
 
 @runtime_checkable
 class EnvHooks(Protocol):
-    """The env-side hooks of :class:`~maniskill_torchrl.transforms.ActionRepeat` and
-    :class:`~maniskill_torchrl.transforms.EpisodeMetrics`."""
+    """The env-side hooks of :class:`~maniskill_torchrl.transforms.ActionRepeat`,
+    :class:`~maniskill_torchrl.transforms.EpisodeMetrics` and
+    :class:`~maniskill_torchrl.transforms.CachedReset`."""
 
     def request_worker_repeat(self, repeat: int) -> bool:
         """Asks the env to apply the next step's action up to ``repeat`` times inside its CPU
@@ -30,6 +32,14 @@ class EnvHooks(Protocol):
         """The host copy of ``tensor``, an entry of the env's last step or reset that was moved
         from the host to an accelerator in one transfer; None where there is none. Valid until
         the next step or reset."""
+
+    def request_reset_states(self, states: TensorDictBase, obs: TensorDictBase | None = None) -> bool:
+        """Asks the env to make its next reset a reset to saved states (ManiSkill's
+        ``options["reset_to_env_states"]``): ``states`` has one row per env being reset, in env
+        order (:meth:`~maniskill_torchrl.ManiSkillWrapper.get_state`'s layout); ``obs``, rows of
+        this env's reset tensordicts taken at those states, gives their observations, so that the
+        sim skips computing them (no camera renders). Returns whether it will; the request holds
+        for the next reset only."""
 
 
 def env_hooks(env: EnvBase) -> EnvHooks | None:

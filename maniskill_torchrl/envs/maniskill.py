@@ -758,7 +758,9 @@ class ManiSkillWrapper(_EnvWrapper):
             states = self._checked_states(scene_state).to(self._sim_device)
             if env_idx is not None:
                 states = states[env_idx]
-            options["reset_to_env_states"] = {"env_states": states.to_dict()}
+            # ManiSkill's other entries (its cached "obs" of these envs) as given.
+            given = options.get("reset_to_env_states") or {}
+            options["reset_to_env_states"] = {**given, "env_states": states.to_dict()}
         else:
             # Partial resets too: ManiSkill seeds torch's RNG only for seeded resets.
             if seed is not None:

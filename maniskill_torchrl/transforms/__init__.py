@@ -2,6 +2,7 @@
 
 from maniskill_torchrl import _register_dataset_prefix
 from maniskill_torchrl.transforms.action_repeat import ActionRepeat
+from maniskill_torchrl.transforms.cached_reset import CachedReset
 from maniskill_torchrl.transforms.cpu_unbatch import CPUUnbatch
 from maniskill_torchrl.transforms.env_states import EnvStates
 from maniskill_torchrl.transforms.episode_metrics import EpisodeMetrics
@@ -12,6 +13,7 @@ from maniskill_torchrl.transforms.terminations import IgnoreTerminations
 
 __all__ = [
     "ActionRepeat",
+    "CachedReset",
     "CPUUnbatch",
     "EnvStates",
     "EpisodeMetrics",

@@ -170,6 +170,9 @@ class _HookedToy(ToyEnv):
     def host_value(self, tensor: torch.Tensor) -> torch.Tensor | None:
         return None
 
+    def request_reset_states(self, states, obs=None) -> bool:
+        return False
+
 
 def test_the_transforms_talk_to_envs_through_the_hooks_protocol():
     """ActionRepeat asks any env implementing ``EnvHooks`` for the workers' repeat (only when
