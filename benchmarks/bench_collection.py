@@ -28,7 +28,12 @@ Task PickCube-v1, ``obs_mode="state"``, random actions, ``max_episode_steps=50``
   (``in_process=True``: sub-env 0 in this process; without either, the machine decides),
   ``em`` (``EpisodeMetrics()`` after the repeat), ``sched=batch|other`` (every worker thread put under
   Linux's ``SCHED_BATCH`` / ``SCHED_OTHER`` once built, whatever the library set; the policies found are
-  reported as ``workers_sched``). The README's pipeline is ``batched:t1,rp,dev,em`` with ``--repeat 2``;
+  reported as ``workers_sched``), ``cr`` / ``cr=K`` (``CachedReset(num_resets=K)`` last, ``K > 1``;
+  default ``num_envs``). The README's pipeline is ``batched:t1,rp,dev,em`` with ``--repeat 2``;
+- ``rgb=S`` (``gym`` and ``batched``): the task's cameras' rgb at S x S pixels (``obs_mode="rgb"``), flattened
+  as ManiSkill's PPO-from-rgb baseline does: ``FlattenRGBDObservationWrapper(rgb=True, depth=False,
+  state=True)`` under ``CPUGymWrapper`` for ``gym``, ``FlattenRGBD`` first for ``batched`` (the rgb pipeline
+  of ``examples/ppo_torchrl.py --obs rgb``);
 - ``parallel``: ``Collector(ParallelEnv(N, lambda: TransformedEnv(ManiSkillEnv(id,
   obs_mode="state", max_episode_steps=50), CPUUnbatch())), policy=None)``, what TorchRL
   users write by habit (``Compose(CPUUnbatch(), ActionRepeat(2))`` inside the workers for
@@ -127,7 +132,7 @@ def cell_name(spec: str, n: int, repeat: int) -> str:
     return f"{spec} N={n} r={repeat}"
 
 
-def fmt_table(results: dict, specs: list[str], ns: list[int], repeats: list[int]) -> str:
+def fmt_table(results: dict, specs: list[str], ns: list[int], repeats: list[int], baseline: str = "gym") -> str:
     rows = [
         "| pipeline | N | repeat | frames/s (median) | min-max | to gym | to best gym | threads (main/workers) "
         "| sims | sub-env 0 | main cpu | workers cpu | others | rounds |",
@@ -136,7 +141,7 @@ def fmt_table(results: dict, specs: list[str], ns: list[int], repeats: list[int]
     notes = []
     for repeat in repeats:
         for n in ns:
-            base = results.get(cell_name("gym", n, repeat))
+            base = results.get(cell_name(baseline, n, repeat))
             base_fps = 1.0 / base.median if base is not None and base.ok else None
             best_fps, _ = best_gym(results, n, repeat)
             for spec in specs:
@@ -237,6 +242,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--budget", type=float, default=None, help="seconds: start no run that would end past them (default: none)"
     )
+    p.add_argument(
+        "--baseline",
+        default="gym",
+        help="the pipeline the 'to gym' column divides by, always run (default gym; e.g. gym:rgb=64 for rgb)",
+    )
     p.add_argument("--out", "--json", dest="out", default=None, help="write all results as JSON here")
     add_alternation_args(p, retries=2)
     p.add_argument("--child", default=None, help=argparse.SUPPRESS)
@@ -249,8 +259,8 @@ def main(argv: list[str] | None = None) -> int:
     # A TERM (timeout, kill) ends the run in progress with its workers (alternate._run_child's cleanup).
     signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt()))
     specs = list(dict.fromkeys(args.pipelines))
-    if "gym" not in specs:
-        specs.insert(0, "gym")
+    if args.baseline not in specs:
+        specs.insert(0, args.baseline)
     print(machine_line())
     t0 = time.perf_counter()
     cells = [(spec, n, repeat) for repeat in args.repeat for n in args.n for spec in specs]
@@ -320,7 +330,7 @@ def main(argv: list[str] | None = None) -> int:
     complete = all(done[k] >= args.rounds or (results[k].note or "").startswith("skipped") for k in contenders)
     stopped = None if complete else stopped
     took = time.perf_counter() - t0
-    table = fmt_table(results, specs, args.n, args.repeat)
+    table = fmt_table(results, specs, args.n, args.repeat, args.baseline)
     print(
         f"\nPickCube-v1 state, random actions, episodes of {EPISODE} steps; frames = agent steps (resets are "
         f"not frames); median of {args.rounds} rounds x {args.seconds:g} s, one process per run ({took:.0f} s "

@@ -35,9 +35,19 @@ RAN_KEYS = ("main_threads", "worker_threads", "sims", "sub_env0", "frames_rule")
 PROBE_DIR = "BENCH_PROBE_DIR"  # where TorchRL's worker envs write what they run (_worker_env)
 
 
-def _maniskill_kwargs() -> dict:
+def _maniskill_kwargs(rgb: int | None = None) -> dict:
+    """The task's keywords: state observations, or with ``rgb=S`` its cameras' rgb at S x S pixels
+    (``obs_mode="rgb"``, ManiSkill's PPO-from-rgb baseline's observations before flattening)."""
     # the CPU sim for every contender: with CUDA, ManiSkillEnv(num_envs>1) would pick the GPU sim
-    return {"obs_mode": "state", "max_episode_steps": EPISODE, "sim_backend": "physx_cpu"}
+    kwargs = {"obs_mode": "state", "max_episode_steps": EPISODE, "sim_backend": "physx_cpu"}
+    if rgb:
+        kwargs.update(obs_mode="rgb", sensor_configs={"width": rgb, "height": rgb})
+    return kwargs
+
+
+def _rgb(opts: dict) -> int | None:
+    """The ``rgb=S`` option's camera size, or None (state observations)."""
+    return int(opts["rgb"]) if "rgb" in opts else None
 
 
 def _quiet() -> None:
@@ -61,7 +71,7 @@ def _gym_probe(inference: bool) -> dict:
     return {"threads": torch.get_num_threads(), "sims": _sim_mode(inference)}
 
 
-def _gym_thunk(repeat: int, threads: int | None = None, inference: bool = False):
+def _gym_thunk(repeat: int, threads: int | None = None, inference: bool = False, rgb: int | None = None):
     import functools
 
     import gymnasium as gym
@@ -72,7 +82,11 @@ def _gym_thunk(repeat: int, threads: int | None = None, inference: bool = False)
     _quiet()
     if threads is not None:  # the thread policy of the library's workers (gym:t1)
         torch.set_num_threads(threads)
-    env = gym.make(ENV_ID, num_envs=1, **_maniskill_kwargs())
+    env = gym.make(ENV_ID, num_envs=1, **_maniskill_kwargs(rgb))
+    if rgb:  # ManiSkill's ppo_rgb stack: its cameras' rgb and the state, flattened, first
+        from mani_skill.utils.wrappers import FlattenRGBDObservationWrapper
+
+        env = FlattenRGBDObservationWrapper(env, rgb=True, depth=False, state=True)
     if repeat > 1:
         env = ActionRepeatWrapper(env, repeat)
     env = CPUGymWrapper(env)
@@ -309,7 +323,7 @@ def gym_vector_env(n: int, repeat: int, opts: dict | None = None):
 
         torch.set_num_threads(threads)
     envs = gym.vector.AsyncVectorEnv(
-        [functools.partial(_gym_thunk, repeat, threads, "inf" in opts)] * n,
+        [functools.partial(_gym_thunk, repeat, threads, "inf" in opts, _rgb(opts))] * n,
         context="forkserver",
         shared_memory="noshm" not in opts,
     )
@@ -411,12 +425,22 @@ def batched_collector(n: int, repeat: int, opts: dict):
 
     from maniskill_torchrl import ActionRepeat, ManiSkillEnv
 
-    env = ManiSkillEnv(ENV_ID, num_envs=n, **_maniskill_kwargs(), **env_options(opts))
-    transforms = [ActionRepeat(repeat)] if repeat > 1 else []
+    env = ManiSkillEnv(ENV_ID, num_envs=n, **_maniskill_kwargs(_rgb(opts)), **env_options(opts))
+    transforms = []
+    if _rgb(opts):  # the rgb pipeline (examples/ppo_torchrl.py --obs rgb): FlattenRGBD first
+        from maniskill_torchrl.transforms import FlattenRGBD
+
+        transforms.append(FlattenRGBD(rgb=True, depth=False, state=True))
+    if repeat > 1:
+        transforms.append(ActionRepeat(repeat))
     if "em" in opts:  # the README's pipeline ends with EpisodeMetrics
         from maniskill_torchrl import EpisodeMetrics
 
         transforms.append(EpisodeMetrics())
+    if "cr" in opts:  # resets from a cache of saved states (cr=K: K of them; default num_envs)
+        from maniskill_torchrl.transforms import CachedReset
+
+        transforms.append(CachedReset(num_resets=None if opts["cr"] == "1" else int(opts["cr"]), seed=SEED))
     if transforms:  # one transform bare, as before `em` existed: a Compose costs each step more
         env = TransformedEnv(env, transforms[0] if len(transforms) == 1 else Compose(*transforms))
     env.set_seed(SEED)
