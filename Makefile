@@ -31,7 +31,7 @@ help:
 	@echo "  make test-sota  TorchRL's own sota trainer scripts (tests/configs/sota), unmodified, on ManiSkill, and a live env in every collector (tests/examples/test_sota_trainers.py, ~6 min)"
 	@echo "  make test-readme  the README walked as a newcomer: fresh venv from the wheel, each command from a temp folder (~8 min)"
 	@echo "  make test-ray  TorchRL's Ray collectors over the library's envs, on a local Ray instance (tests/examples/test_ray.py, ~4 min on 2 cores)"
-	@echo "  make test-model  the model-based test of the asynchronous path, long profile (hypothesis, ~5 min)"
+	@echo "  make test-model  the model-based test of the asynchronous path, long profile (hypothesis, 5-15 min)"
 	@echo "  make test-upstream  the TorchRL pull request of upstream/ on a copy of the installed torchrl (tests/upstream, ~1.5 min)"
 	@echo "  make test-cuda-double  the library on a CUDA machine, under the CUDA double (tests/gpu/test_cuda_machine.py, ~2.5 min)"
 	@echo "  make test-registry  every task of ManiSkill's registry whose assets are here (tests/registry, ~2 min)"
@@ -84,9 +84,9 @@ test-ray: setup
 # upstream/ (upstream/README.md): the module, exports, config and TorchRL's test file applied to a copy of the
 # installed torchrl, whose test file then runs in a child process.
 # The model-based test of the asynchronous path (tests/engines/test_async_model.py), its long profile: new random
-# sequences each run, answers received as they come (make test runs its short, derandomized profile; ~5 min). Not in
-# .ci/run: a long run sometimes fails as hypothesis' FlakyStrategyDefinition while shrinking (a finding it cannot
-# replay, answers arriving in another order), not yet traced (issue 59).
+# sequences each run, half of them receiving the answers as they come (make test runs its short, derandomized
+# profile; 5-15 min on 2 cores, by load). .ci/run runs it. What hypothesis draws never depends on timing, so that a
+# failure replays and shrinks (it failed as FlakyStrategyDefinition when its rules' preconditions did; issue 59).
 test-model: setup
 	MANISKILL_TORCHRL_MODEL_RUNS=long $(VENV)/bin/python -m pytest -q --durations=5 tests/engines/test_async_model.py $(PYTEST_ARGS)
 

@@ -23,6 +23,12 @@ ids change exactly at episode ends and belong to one env.
 
 Profiles: the default run fits ``make test`` (the same sequences every run); ``MANISKILL_TORCHRL_MODEL_RUNS=long``
 explores more, and new sequences each run (``MANISKILL_TORCHRL_MODEL_EXAMPLES`` / ``_STEPS`` override both).
+
+What hypothesis draws never depends on timing, so that a failure replays and shrinks (else: hypothesis'
+FlakyStrategyDefinition, a failure it cannot replay). Which envs a ``min_get`` receive or a collector's batch gets
+is the machine's; so the rules choose among the envs with nothing under way (a step to an env whose episode ended
+resets it first), and a receive that takes the answers as they come (the long profile's unsettled sequences) then
+receives the rest of that kind by ``env_index``. A failure's note lists the envs as the machine gave them.
 To look at one finding: ``_RULES`` (the rules that act), ``_POLICIES``, ``_FRESH=1`` (a new pool per
 sequence), ``_VERBOSE=1`` (every step). Each test appends what it explored (sequences, rules, pool calls,
 transitions checked) to ``outputs/async_model.txt``.
@@ -244,7 +250,12 @@ def _rule(fn):
         self.broken = True
         self.world.stats["rules"] += 1
         start = time.perf_counter()
-        out = fn(self, *args, **kwargs)
+        try:
+            out = fn(self, *args, **kwargs)
+        except BaseException as err:
+            if self.arrivals:  # what timing decided, to replay a failure that needs it
+                err.add_note("Envs as the machine gave them in this sequence: " + "; ".join(self.arrivals[-30:]))
+            raise
         self.world.times[fn.__name__] += time.perf_counter() - start
         self.world.counts[fn.__name__] += 1
         self.broken = False
@@ -270,6 +281,7 @@ class PoolMachine(RuleBasedStateMachine):
         self.lowered = False  # the watchdog's limits are lowered (a pause), until the next receive
         self.pauses = 0
         self.settled = True  # _settle before each receive (see MAX_PAUSES)
+        self.arrivals: list[str] = []  # which envs the calls that take the first to arrive got, in order
 
     # ------------------------------------------------------------------ the lone envs
     def _root_td(self, obs: np.ndarray, info: dict) -> TensorDictBase:
@@ -353,9 +365,24 @@ class PoolMachine(RuleBasedStateMachine):
     def _pending(self, kind: str) -> list[int]:
         return [i for i, env in enumerate(self.envs) if env.pending is not None and env.pending.kind == kind]
 
-    def _ready(self) -> list[int]:
-        """The envs a step may be sent to (the collector's are, once the lone envs catch up)."""
-        return [i for i, env in enumerate(self.envs) if env.pending is None and env.status in (READY, OWNED)]
+    def _free(self) -> list[int]:
+        """The envs with nothing under way. Which of them ended an episode is not known before a rule: how many
+        steps each env took depends on which envs a collector (or a receive) got first, and what hypothesis
+        draws may not depend on timing (else a failure would not replay: FlakyStrategyDefinition)."""
+        return [i for i, env in enumerate(self.envs) if env.pending is None]
+
+    def _reset_ended(self, envs: list[int]) -> None:
+        """The envs of ``envs`` whose episode ended (their last call an ``async_step_send``) reset, through
+        ``async_reset_send`` / ``async_reset_recv(env_index=...)``: they can step again."""
+        ended = [i for i in envs if self.envs[i].status == DONE]
+        if not ended:
+            return
+        self._call(self.pool.async_reset_send, env_index=ended)
+        out = self._call(self.pool.async_reset_recv, env_index=ended, receive=True)
+        for j, i in enumerate(ended):
+            expected = _copy(self._ref_reset(i)).set("env_index", torch.tensor(i))
+            self.envs[i].status = READY
+            assert_tensordict_equal(out[j], expected, msg=f"env {i}'s reset (its episode ended)")
 
     def _choose_envs(self, data, among: list[int], label: str) -> list[int]:
         chosen = data.draw(st.lists(st.sampled_from(among), min_size=1, unique=True), label=label)
@@ -437,13 +464,15 @@ class PoolMachine(RuleBasedStateMachine):
         self.broken = False
 
     # ------------------------------------------------------------------ asynchronous steps
-    @precondition(lambda self: self._ready() and (self.coll is None or self.coll.iterator is None))
+    @precondition(lambda self: self._free() and (self.coll is None or self.coll.iterator is None))
     @rule(data=st.data())
     @_rule
     def step_send(self, data) -> None:
-        """``async_step_send`` / ``async_step_and_maybe_reset_send`` of some ready envs."""
+        """``async_step_send`` / ``async_step_and_maybe_reset_send`` of some envs with nothing under way; those
+        whose episode ended (an ``async_step_send``'s last step) are reset first (``async_reset_send``)."""
         self._foreign()
-        envs = self._choose_envs(data, self._ready(), "envs sent")
+        envs = self._choose_envs(data, self._free(), "envs sent")
+        self._reset_ended(envs)
         kind = data.draw(st.sampled_from([STEP, STEP_RESET]), label="kind")
         form = data.draw(st.sampled_from(["list", "tensor", "entry"] + (["int"] if len(envs) == 1 else [])))
         policy = data.draw(st.sampled_from(sorted(POLICIES)), label="policy")
@@ -490,6 +519,11 @@ class PoolMachine(RuleBasedStateMachine):
             if data.draw(st.booleans(), label="timeout given"):
                 args["timeout"] = data.draw(st.sampled_from([0.0, 0.01, 0.2]), label="timeout")
             self._receive(kind, args, None)
+        if not self.settled and self._pending(kind):
+            # Which envs came is the machine's: the rest of this kind are received too (by env_index), so that
+            # what is under way after this rule, and so what hypothesis draws next, does not depend on timing.
+            rest = self._pending(kind)
+            self._receive(kind, dict(env_index=rest), rest)
 
     def _settle(self) -> None:
         """Waits for the answers of every call under way and reads them in env order, so that a receive
@@ -512,6 +546,7 @@ class PoolMachine(RuleBasedStateMachine):
                 out = self._call(call, receive=True, **args)
             except TimeoutError:
                 assert "timeout" in args, "a TimeoutError without a timeout"
+                self.arrivals.append(f"{kind}_recv({args}): TimeoutError")
                 return  # what arrived is kept for the next call: the next receives check it
         one = isinstance(args.get("env_index"), int)
         if kind == STEP_RESET:
@@ -522,6 +557,8 @@ class PoolMachine(RuleBasedStateMachine):
             transitions = None if transitions is None else transitions.unsqueeze(0)
             roots = None if roots is None else roots.unsqueeze(0)
         got = (transitions if transitions is not None else roots).get("env_index").tolist()
+        if envs is None:
+            self.arrivals.append(f"{kind}_recv({args}): {got}")
         assert len(set(got)) == len(got), f"an env received twice in one receive: {got}"
         assert set(got) <= set(under_way), f"received {got}, of which only {under_way} had a {kind} under way"
         if envs is not None:
@@ -596,14 +633,16 @@ class PoolMachine(RuleBasedStateMachine):
                 assert_tensordict_equal(out[i], expected, msg=f"env {i}'s reset")
 
     # ------------------------------------------------------------------ sync steps
-    @precondition(lambda self: self._idle() and self.envs and len(self._ready()) == len(self.envs))
+    @precondition(lambda self: self._idle() and self.envs)
     @rule(data=st.data())
     @_rule
     def sync_step(self, data) -> None:
-        """``pool.step(td)`` or ``pool.step_and_maybe_reset(td)``: every env together."""
+        """``pool.step(td)`` or ``pool.step_and_maybe_reset(td)``: every env together (those whose episode
+        ended reset first)."""
         autoreset = data.draw(st.booleans(), label="step_and_maybe_reset")
         policy = data.draw(st.sampled_from(sorted(POLICIES)), label="policy")
         self._foreign()
+        self._reset_ended(list(range(self.n)))
         td = POLICIES[policy](torch.stack([env.root for env in self.envs]))
         sent = _copy(td)
         if autoreset:
@@ -748,6 +787,7 @@ class PoolMachine(RuleBasedStateMachine):
     def _batch(self, coll: CollectorModel, batch: TensorDictBase) -> None:
         assert batch.batch_size == (coll.frames_per_batch,)
         ids = batch.get(("collector", "traj_ids"))
+        self.arrivals.append(f"collector batch: {batch.get('env_index').tolist()}")
         assert (ids[1:] >= ids[:-1]).all(), f"trajectory ids not sorted: {ids.tolist()}"
         for t in range(coll.frames_per_batch):
             row = batch[t]
@@ -795,6 +835,8 @@ class PoolMachine(RuleBasedStateMachine):
             return
         kind = data.draw(st.sampled_from([k for k in (STEP, STEP_RESET, RESET) if self._pending(k)]), label="kind")
         under_way = self._pending(kind)
+        if self.settled:  # the other kinds' answers are read here too, in env order (their arrival order)
+            self._call(self._settle)
         self._receive(kind, dict(min_get=len(under_way)), under_way)
 
     # ------------------------------------------------------------------ misuse: a clear error, nothing changed
