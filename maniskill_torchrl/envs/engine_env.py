@@ -232,7 +232,7 @@ class ManiSkillWrapper(maniskill.ManiSkillWrapper):
             self._workers.set_repeat(repeat)
 
     def request_reset_states(self, states: TensorDictBase, obs: TensorDictBase | None = None) -> bool:
-        """Makes the next reset a reset to ``states`` (:meth:`reset_to_state`, one row per env
+        """Makes the next reset a reset to ``states`` (rows of :meth:`get_state`, one per env
         being reset, in env order), with ``obs``'s observation entries as its observations where
         given: ManiSkill's ``reset_to_env_states`` options, which skip the task's episode
         initialization and, with ``obs``, the observation (camera renders included). The request
@@ -249,29 +249,25 @@ class ManiSkillWrapper(maniskill.ManiSkillWrapper):
         request, self._next_states = self._next_states, None  # taken first: a failing reset leaves none behind
         if request is None or kwargs.get("set_state"):
             return super()._reset(tensordict, **kwargs)
-        states, obs = request
         kwargs.pop("set_state", None)
+        return self._reset_to_rows(tensordict, *request, **kwargs)
+
+    def _reset_to_rows(
+        self, tensordict: TensorDictBase | None, states: TensorDictBase, obs: TensorDictBase | None, **kwargs: Any
+    ) -> TensorDictBase:
+        """ManiSkill's ``reset(options={"reset_to_env_states": ...})`` with one row of states (and
+        observations) per env being reset, as ManiSkill's ``CachedResetWrapper`` passes them. The
+        rows are this env's own ``get_state()`` rows, so the layout check of :meth:`reset_to_state`
+        (a read of the sim's state and a copy of every leaf: 5x a plain reset on DrawTriangle-v1's
+        hundreds of actors) is skipped. The reset takes its seed as a plain one does (the env's next
+        draw); the states, not the seed, make the episodes' starts."""
         options = dict(kwargs.pop("options", None) or {})
+        cached = {"env_states": states.to(self._sim_device).to_dict()}
         obs = self._maniskill_obs(obs)
         if obs is not None:
-            options["reset_to_env_states"] = {"obs": obs}
-        state = self._rows_to_states(tensordict, states)
-        return super()._reset(tensordict, set_state=True, scene_state=state, options=options, **kwargs)
-
-    def _rows_to_states(self, tensordict: TensorDictBase | None, states: TensorDictBase) -> TensorDictBase:
-        """The ``[num_envs]`` states of a reset from the rows of the envs it resets (the others' rows unused)."""
-        if self._unbatched:
-            return states[0]
-        reset = tensordict.get("_reset", None) if tensordict is not None else None
-        rows = torch.arange(self.batch_size[0]) if reset is None else reset.reshape(-1).nonzero().squeeze(-1).cpu()
-        if states.batch_size[:1] != rows.shape:
-            raise ValueError(
-                f"request_reset_states: {states.batch_size[0] if states.batch_dims else 0} rows of states for a reset "
-                f"of {rows.numel()} env(s): one row per env being reset."
-            )
-        full = states[torch.zeros(self.batch_size[0], dtype=torch.long, device=states.device)].clone()
-        full[rows.to(states.device)] = states
-        return full
+            cached["obs"] = obs
+        options["reset_to_env_states"] = cached
+        return super()._reset(tensordict, options=options, **kwargs)
 
     def _maniskill_obs(self, obs: TensorDictBase | None) -> Any:
         """ManiSkill's observations (its dict, or the Box observation) from rows of reset tensordicts, or None
