@@ -136,14 +136,8 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         ):
             if key in kwargs:
                 raise TypeError(f"ManiSkillAsyncEnvPool does not take {key}=: {why}.")
-        self._maniskill = dict(
-            env_name=env_name,
-            repeat=repeat,
-            info_keys=info_keys,
-            warn_after=warn_after,
-            fail_after=fail_after,
-            kwargs=kwargs,
-        )
+        names = ("env_name", "repeat", "info_keys", "warn_after", "fail_after", "kwargs")
+        self._maniskill = dict(zip(names, (env_name, repeat, info_keys, warn_after, fail_after, kwargs)))
         # The batched env whose specs and layout the pool has: in __dict__, not a submodule.
         self.__dict__["_inner"] = None
         single = functools.partial(ManiSkillEnv, env_name, batch_size=[], info_keys=info_keys, **kwargs)
@@ -385,7 +379,7 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         index = torch.from_numpy(rows)
         transitions = self._read_sent(rows)
         transitions.set(self._env_idx_key, index)
-        transitions.set("next", self._inner._step_tensordict(*step))
+        transitions.set("next", self._next_rows(step))
         return transitions, index
 
     @staticmethod
@@ -475,7 +469,7 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
             return {key: source(key, td) for key in td.keys(True, True)}
 
         views = block.views(0, n)
-        nxt = inner._step_tensordict(views[OBS], views[REWARD], views[TERMINATED], views[TRUNCATED], views[INFO])
+        nxt = self._next_rows((views[OBS], views[REWARD], views[TERMINATED], views[TRUNCATED], views[INFO]))
         again = block.views(n, 2 * n)
         restart = self._reset_rows(again[OBS], again[INFO], n)
         in_step, in_reset = located(nxt), located(restart)
@@ -559,6 +553,14 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
         roots = new_tensordict(tree, batch_size=torch.Size([k]))
         self.__dict__["_fresh"] = (roots, tree)
         return rows, done, roots
+
+    def _next_rows(self, step: tuple) -> TensorDictBase:
+        """The ``"next"`` entries of some envs' steps, ``(obs, reward, terminated, truncated, info)``
+        rows, as the env's step makes them (the engine's outputs are fresh: nothing to copy)."""
+        obs, reward, terminated, truncated, info = step
+        inner = self._inner
+        source = inner._to_source(obs, info, reward, terminated, truncated)
+        return new_tensordict(source, batch_size=reward.shape[:1], device=inner.device)
 
     def _reset_rows(self, obs: Any, info: Any, count: int) -> TensorDictBase:
         """The reset entries of ``count`` envs, as the env's reset makes them."""

@@ -128,6 +128,7 @@ class ManiSkillWrapper(maniskill.ManiSkillWrapper):
             env = InferenceModeEnv(env)
         env = super()._build_env(env, **kwargs)
         self._workers = engine
+        self._gather = self._host_gather()
         if engine is not None:
             self._set_seed(None)
         # The workers' repeat: the one asked for the next step (0: none), else the engine's own.
@@ -146,19 +147,41 @@ class ManiSkillWrapper(maniskill.ManiSkillWrapper):
         """Whether ManiSkill is called under :func:`torch.inference_mode`."""
         return bool(self._inference)
 
-    def _set_device_rule(self, device: torch.device) -> None:
-        # Inference tensors are copied out into normal ones.
-        self._copies = self._copies or bool(self._inference)
-        super()._set_device_rule(device)
-        # The CPU sim feeding an accelerator: the step's host outputs go up in one transfer.
-        self._gather = HostGather(device) if self._moves and self._sim_device.type == "cpu" else None
-        if self._gather is not None:
-            self._obs_leaf = self._info_leaf = maniskill._unbatch if self._unbatched else None
-            self._flag_leaf = None
+    # ------------------------------------------------------------------ outputs
+    def _host_gather(self) -> HostGather | None:
+        """The CPU sim feeding an accelerator: a step's host outputs go up in one transfer."""
+        sim, device = self._sim_device, self.device
+        return HostGather(device) if sim.type == "cpu" and device != sim else None
 
-    def _to_source(self, obs: Any, info: Any, **entries: Any) -> dict:
-        source = super()._to_source(obs, info, **entries)
-        return source if self._gather is None else self._gather(source)
+    def to(self, device: Any) -> ManiSkillWrapper:
+        super().to(device)
+        self._gather = self._host_gather()
+        return self
+
+    def _to_device(self, source: dict) -> dict:
+        gather = self._gather
+        if gather is not None:  # copied into its buffer: nothing aliases the sim
+            return gather(source)
+        if self._inference:  # inference tensors are copied out into normal ones
+            device = self.device
+            return maniskill._mapped(source, lambda x: x.to(device, copy=True))
+        return super()._to_device(source)
+
+    @property
+    def _copy_out(self) -> bool:
+        """Whether every output is a copy, none ManiSkill's own tensor."""
+        return self._inference or self._copies or self.device != self._sim_device
+
+    def render(self, *args: Any, **kwargs: Any) -> Any:
+        frame = super().render(*args, **kwargs)
+        # ManiSkill's own picture, where the adapter did not copy it: out as a normal tensor, on env.device.
+        if (
+            self._inference
+            and isinstance(frame, torch.Tensor)
+            and (frame.is_inference() or frame.device != self.device)
+        ):
+            frame = frame.to(self.device, copy=True)
+        return frame
 
     def _set_seed(self, seed: int | None) -> None:
         # The sub-envs' processes fork from one: without a seed, ManiSkill's unseeded resets would
@@ -187,7 +210,19 @@ class ManiSkillWrapper(maniskill.ManiSkillWrapper):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         if self._workers is not None:
             self._set_worker_repeat()
-        return super()._step(tensordict)
+        try:
+            return super()._step(tensordict)
+        except KeyError as err:
+            keys = ["action"] if "action" not in tensordict.keys() else self.action_keys
+            missing = next((k for k in keys if tensordict.get(k, None) is None), None)
+            if missing is None:  # not the action's: as raised
+                raise
+            entries = sorted(tensordict.keys(True, True), key=str)
+            raise _MissingActionError(
+                f"{type(self).__name__}.step() found no action at {missing!r} in the tensordict, whose entries are "
+                f"{entries}. Set the action entries {self.action_keys} (shapes from env.full_action_spec), e.g. "
+                "td = env.rand_action(td), or run a policy that writes them."
+            ) from err
 
     def _step_proc_data(self, next_tensordict_out: TensorDictBase) -> TensorDictBase:
         # The adapter's step writes the reward and the done entries with their spec shapes and dtypes: EnvBase's
@@ -195,19 +230,6 @@ class ManiSkillWrapper(maniskill.ManiSkillWrapper):
         if self.run_type_checks:
             return super()._step_proc_data(next_tensordict_out)
         return next_tensordict_out
-
-    def _sim_action(self, tensordict: TensorDictBase) -> Any:
-        try:
-            return super()._sim_action(tensordict)
-        except KeyError as err:
-            keys = ["action"] if "action" not in tensordict.keys() else self.action_keys
-            missing = next(k for k in keys if tensordict.get(k, None) is None)
-            entries = sorted(tensordict.keys(True, True), key=str)
-            raise _MissingActionError(
-                f"{type(self).__name__}.step() found no action at {missing!r} in the tensordict, whose entries are "
-                f"{entries}. Set the action entries {self.action_keys} (shapes from env.full_action_spec), e.g. "
-                "td = env.rand_action(td), or run a policy that writes them."
-            ) from err
 
     # ------------------------------------------------------------------ EnvHooks
     def request_worker_repeat(self, repeat: int) -> bool:

