@@ -281,8 +281,9 @@ class ManiSkillWrapper(maniskill.ManiSkillWrapper):
         observations) per env being reset, as ManiSkill's ``CachedResetWrapper`` passes them. The
         rows are this env's own ``get_state()`` rows, so the layout check of :meth:`reset_to_state`
         (a read of the sim's state and a copy of every leaf: 5x a plain reset on DrawTriangle-v1's
-        hundreds of actors) is skipped. The reset takes its seed as a plain one does (the env's next
-        draw); the states, not the seed, make the episodes' starts."""
+        hundreds of actors) is skipped. The reset is unseeded, as the wrapper's, and draws nothing from
+        the env's seeds: the states make the episodes' starts, and a seeded ManiSkill reset would
+        rebuild its RNGs (a third of a cached reset's time)."""
         options = dict(kwargs.pop("options", None) or {})
         cached = {"env_states": states.to(self._sim_device).to_dict()}
         obs = self._maniskill_obs(obs)

@@ -736,7 +736,9 @@ class ManiSkillWrapper(_EnvWrapper):
             # Partial resets too: ManiSkill seeds torch's RNG only for seeded resets.
             if seed is not None:
                 self._seeds.set(seed)
-            seed = self._seeds.draw()
+            # States in ManiSkill's options make the starts: unseeded, as CachedResetWrapper's.
+            if seed is not None or "reset_to_env_states" not in options:
+                seed = self._seeds.draw()
         obs, info = self._env.reset(seed=seed, options=options)
         source = self._to_device(self._to_source(obs, info))
         return TensorDict._new_unsafe(

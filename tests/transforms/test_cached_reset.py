@@ -84,6 +84,11 @@ def _assert_same(ours, theirs, obs=lambda td: td["observation"]):
             assert_tensordict_equal(got, expected, msg=f"call {t}")
 
 
+def _rng_seeds(base_env) -> tuple:
+    """ManiSkill's main and episode seeds: what a seeded reset sets and an unseeded one keeps."""
+    return list(base_env._main_seed), [int(x) for x in base_env._episode_seed]
+
+
 def test_built_cache_equals_maniskills_wrapper():
     """The cache ManiSkill's wrapper builds (``CachedResetsConfig(num_resets=1, seed=5)``), then
     three cached resets and their steps: the same observations and rewards, to the bit."""
@@ -95,12 +100,15 @@ def test_built_cache_equals_maniskills_wrapper():
     )
     try:
         theirs = _sequence(*_raw_play(raw), actions)
+        their_seeds = _rng_seeds(raw.unwrapped)
     finally:
         close_envs([raw])
     env = TransformedEnv(ManiSkillEnv(TASK, obs_mode="state", max_episode_steps=50), CachedReset(num_resets=1, seed=5))
     try:
         ours = _sequence(*_library_play(env), actions)
         assert env.transform.env_states.batch_size == torch.Size([1])
+        # Cached resets are unseeded, as the wrapper's: ManiSkill's RNGs end where the wrapper's do.
+        assert _rng_seeds(env.base_env.unwrapped) == their_seeds
     finally:
         env.close()
     _assert_same(ours, theirs)
