@@ -31,7 +31,7 @@ from maniskill_torchrl import (
     ManiSkillEnv,
     ManiSkillWrapper,
 )
-from support.helpers import ctrl_c_after_a_length, make_gym_env, random_actions, start
+from support.helpers import make_gym_env, random_actions, start
 
 N = 2
 CART = dict(obs_mode="state", max_episode_steps=30, sim_backend="cpu")  # random actions fail it after ~20 steps
@@ -163,20 +163,6 @@ def test_without_a_seed_every_sub_env_plays_its_own_episode(pick_vec):
 
 def test_check_env_specs(pick_vec):
     check_env_specs(pick_vec, seed=0)
-
-
-def test_ctrl_c_inside_a_lockstep_read_comes_after_the_step(cartpole, monkeypatch):
-    """A Ctrl-C inside the read of a worker's answer to a lockstep step (between its length and its body)
-    comes once the step is done, every answer read. Before the fix it came mid-read, and the read of the
-    answers owed (WorkerPool._settle) took the body left in the pipe for a length: a hang."""
-    engine = cartpole._env
-    td = cartpole.reset().set("action", torch.zeros(N, 1))
-    with ctrl_c_after_a_length(engine._pool.pipes[0], monkeypatch) as reads:
-        with pytest.raises(KeyboardInterrupt):
-            cartpole.step(td)
-        out = cartpole.step(td)  # in step: the next step reads its own answers
-    assert reads[:2] == [4, 1], reads
-    assert out["next", "observation"].shape[0] == N
 
 
 def test_each_sub_env_equals_a_raw_env(cartpole):

@@ -14,14 +14,11 @@ from __future__ import annotations
 
 import gc
 import os
-import signal
 import struct
 import subprocess
 import sys
 import tempfile
-import threading
-from collections.abc import Iterable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 from unittest import mock
@@ -288,39 +285,3 @@ def alone_where_cuda(request: Any) -> bool:
     _check(proc)
     assert "1 passed" in proc.stdout, proc.stdout[-3000:]
     return True
-
-
-class ReadHung(Exception):
-    """A read that did not return (not an OSError: the engine takes those for a dead worker)."""
-
-
-@contextmanager
-def ctrl_c_after_a_length(pipe: Any, monkeypatch: pytest.MonkeyPatch) -> Iterator[list[int]]:
-    """SIGINT raised inside ``pipe.recv_bytes()``, right after a message's 4-byte length and before its body
-    (where a terminal's Ctrl-C can land), once; yields the sizes ``Connection._recv`` read. Python's default
-    SIGINT handler is set for the block; a read that hangs is cut by SIGALRM after 20 s (:class:`ReadHung`)."""
-    if threading.current_thread() is not threading.main_thread():
-        pytest.skip("signal handlers are the main thread's")
-    reads: list[int] = []
-    real = pipe._recv
-
-    def recv(size: int, read: Any = None) -> Any:
-        out = real(size)
-        reads.append(size)
-        if len(reads) == 1:
-            signal.raise_signal(signal.SIGINT)
-        return out
-
-    def hung(signum: int, frame: Any) -> None:
-        raise ReadHung("a read after Ctrl-C hangs: a message was cut in two")
-
-    monkeypatch.setattr(pipe, "_recv", recv, raising=False)
-    old = signal.signal(signal.SIGINT, signal.default_int_handler), signal.signal(signal.SIGALRM, hung)
-    signal.setitimer(signal.ITIMER_REAL, 20.0)
-    try:
-        yield reads
-    finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGINT, old[0])
-        signal.signal(signal.SIGALRM, old[1])
-        monkeypatch.setattr(pipe, "_recv", real, raising=False)
