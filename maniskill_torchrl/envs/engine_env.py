@@ -154,6 +154,8 @@ class ManiSkillWrapper(maniskill.ManiSkillWrapper):
         return HostGather(device) if sim.type == "cpu" and device != sim else None
 
     def to(self, device: Any) -> ManiSkillWrapper:
+        """This env with its outputs on ``device`` from now on, checked as ``device=`` is (a CPU-sim env's
+        outputs then move to it in one transfer)."""
         super().to(device)
         self._gather = self._host_gather()
         return self
@@ -173,6 +175,9 @@ class ManiSkillWrapper(maniskill.ManiSkillWrapper):
         return self._inference or self._copies or self.device != self._sim_device
 
     def render(self, *args: Any, **kwargs: Any) -> Any:
+        """Renders the env on ``env.device``: ManiSkill's frames (``[B, H, W, 3]`` uint8 for
+        ``rgb_array``), copied where ManiSkill renders into a reused buffer, and normal tensors in
+        inference mode."""
         frame = super().render(*args, **kwargs)
         # ManiSkill's own picture, where the adapter did not copy it: out as a normal tensor, on env.device.
         if (
