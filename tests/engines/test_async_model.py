@@ -379,7 +379,9 @@ class PoolMachine(RuleBasedStateMachine):
             return
         self._call(self.pool.async_reset_send, env_index=ended)
         out = self._call(self.pool.async_reset_recv, env_index=ended, receive=True)
-        for j, i in enumerate(ended):
+        # the rows come in env order, whatever the order asked (TorchRL's pools sort their results)
+        assert out.get("env_index").tolist() == sorted(ended), f"asked for {ended}, rows {out['env_index'].tolist()}"
+        for j, i in enumerate(sorted(ended)):
             expected = _copy(self._ref_reset(i)).set("env_index", torch.tensor(i))
             self.envs[i].status = READY
             assert_tensordict_equal(out[j], expected, msg=f"env {i}'s reset (its episode ended)")
@@ -559,7 +561,7 @@ class PoolMachine(RuleBasedStateMachine):
         got = (transitions if transitions is not None else roots).get("env_index").tolist()
         if envs is None:
             self.arrivals.append(f"{kind}_recv({args}): {got}")
-        assert len(set(got)) == len(got), f"an env received twice in one receive: {got}"
+        assert got == sorted(set(got)), f"rows not in env order, or an env received twice: {got}"
         assert set(got) <= set(under_way), f"received {got}, of which only {under_way} had a {kind} under way"
         if envs is not None:
             assert sorted(got) == sorted(envs), f"asked for {envs}, received {got}"
