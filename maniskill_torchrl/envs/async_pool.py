@@ -93,8 +93,9 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
     ``async_step_and_maybe_reset_recv`` those sent ``async_step_and_maybe_reset_send``.
     ``min_get``, ``max_get``, ``timeout`` and ``env_index`` follow TorchRL's pools: an ``int``
     ``env_index`` gives that env's unbatched result, the results of several envs come in env
-    order (whatever the order of an ``env_index`` list), each with its ``"env_index"``, and the per-env calls may come from one
-    thread per env (TorchRL's ``AsyncBatchedCollector`` env loops). A worker that fails makes
+    order (whatever the order of an ``env_index`` list), each with its ``"env_index"``, and the
+    per-env calls may come from one thread per env (TorchRL's ``AsyncBatchedCollector`` env
+    loops). A worker that fails makes
     the call raise a ``RuntimeError`` naming its env, and closes the pool; an env that does not
     answer for ``warn_after`` seconds is warned about, and after ``fail_after`` seconds the call
     raises and closes the pool (never a hang). CPU only (``device="cpu"``); pictures come with
