@@ -6,10 +6,7 @@
 
 This module exposes :class:`ManiSkillWrapper`, a TorchRL adapter for a ManiSkill 3
 env made with ``gym.make``, and :class:`ManiSkillEnv`, which builds a task from
-ManiSkill's registry. ManiSkill returns batched torch tensors (``[num_envs, ...]``)
-on the simulation device: each step builds one TensorDict from them, with no numpy
-round trip, and copies only what ManiSkill overwrites later (the GPU sim's buffers)
-or what must reach another device (a CPU-sim env feeding a GPU policy).
+ManiSkill's registry.
 """
 
 from __future__ import annotations
@@ -44,11 +41,7 @@ _RESERVED_KEYS = frozenset({"reward", "done", "terminated", "truncated", "action
 
 
 def _canonical_device(device: Any) -> torch.device:
-    """Returns ``device`` with an index for CUDA.
-
-    ManiSkill's ``"cuda"`` and TorchRL's ``"cuda:0"`` then compare equal; ManiSkill's
-    backend names (``"physx_cuda:1"``) are read as devices.
-    """
+    """``device``, with an index for CUDA; ManiSkill's backend names read as devices."""
     if isinstance(device, str):
         name, sep, index = device.partition(":")
         device = _DEVICE_ALIASES.get(name.lower(), name) + sep + index
@@ -70,38 +63,11 @@ def _layers(env: Any) -> list[Any]:
     return layers
 
 
-def _maniskill_layer(env: Any, attr: str) -> bool:
-    from mani_skill.vector.wrappers.gymnasium import ManiSkillVectorEnv
-
-    return any(
-        isinstance(layer, ManiSkillVectorEnv) and getattr(layer, attr)
-        for layer in _layers(env)
-    )
-
-
-def _auto_resetting_wrapper(env: Any) -> str | None:
-    """The wrapper that resets done envs inside its ``step``, or None."""
-    from gymnasium.wrappers import Autoreset
-
-    if _maniskill_layer(env, "auto_reset"):
-        return "ManiSkillVectorEnv(auto_reset=True)"
-    if any(isinstance(layer, Autoreset) for layer in _layers(env)):
-        return "gymnasium.wrappers.Autoreset"
-    return None
-
-
-def _wrapper_attr(env: Any, name: str) -> Any:
-    """An attribute of the outermost gym wrapper that defines it."""
-    get = getattr(env, "get_wrapper_attr", None)
-    return get(name) if get is not None else getattr(env, name)
-
-
 def _reuses_buffers(base: Any) -> bool:
     """Whether a ManiSkill ``BaseEnv`` may hand out tensors that it writes into later.
 
-    The GPU sim's camera pictures are SAPIEN's CUDA buffers, and a hidden actor's
-    pose is written in place at reset; the CPU sim rendering with ``sapien_cuda``
-    reads its cameras from CUDA buffers too. Rendering on the CPU copies.
+    The GPU sim's (camera buffers, poses written in place at reset), and the CPU
+    sim's pictures when it renders with ``sapien_cuda``.
     """
     if getattr(base, "gpu_sim_enabled", False):
         return True
@@ -109,25 +75,8 @@ def _reuses_buffers(base: Any) -> bool:
     return backend == "sapien_cuda"
 
 
-def _render_frame_shape(base: Any) -> tuple[int, ...]:
-    """``(H, W, 3)`` of one env's frame: from its one camera, else a render (tiled).
-
-    ManiSkill has no public name for its render cameras' configs; reading them spares
-    a render before the first reset.
-    """
-    configs = getattr(base, "_human_render_camera_configs", {}) or {}
-    if len(configs) == 1:
-        (cfg,) = configs.values()
-        return (cfg.height, cfg.width, 3)
-    return tuple(base.render().shape[-3:])
-
-
 def _cpu_sim(num_envs: int, sim_backend: Any) -> bool:
-    """Whether ``gym.make`` gives the CPU sim.
-
-    ManiSkill's ``"auto"`` is the CPU sim for one env, and for more the GPU sim where
-    there is CUDA.
-    """
+    """Whether ``gym.make`` gives the CPU sim (``"auto"``: one env, or no CUDA)."""
     from mani_skill.envs.utils.system.backend import CPU_SIM_BACKENDS
 
     backend = str(sim_backend).lower()
@@ -139,10 +88,7 @@ def _cpu_sim(num_envs: int, sim_backend: Any) -> bool:
 def _task_kwargs(
     env_name: str, num_envs: Any, from_pixels: bool, batch_size: Any, kwargs: dict
 ) -> dict:
-    """``gym.make``'s keyword arguments for a task, checked before anything is built.
-
-    The sim's device is not guessed here: the wrapper reads it from the built env.
-    """
+    """``gym.make``'s keyword arguments for a task, checked before anything is built."""
     available = ManiSkillWrapper.available_envs
     if env_name not in available:
         stem = env_name.split("-")[0].lower()
@@ -183,7 +129,6 @@ def _task_kwargs(
 
 
 def _check_args(from_pixels: bool, pixels_only: bool) -> None:
-    """The checks of both constructors, before anything is built."""
     if not _has_maniskill:
         raise ImportError(
             "mani_skill python package was not found. Install it with: "
@@ -199,7 +144,6 @@ def _env_id(env: Any) -> str:
     return spec.id if spec is not None else type(env.unwrapped).__name__
 
 
-# --------------------------------------------------------------------------- specs
 def _bool_spec(shape: torch.Size, device: torch.device) -> TensorSpec:
     return Categorical(n=2, shape=shape, dtype=torch.bool, device=device)
 
@@ -244,59 +188,43 @@ def _space_to_spec(
 def _info_spec(
     infos: Mapping[str, Any], batch_size: torch.Size, device: torch.device
 ) -> Composite:
-    """Declares the tensor entries of a ManiSkill info dict.
-
-    Only those whose leading dims are the batch: python values such as
-    ``reconfigure`` are per-call metadata.
-    """
+    """Specs of the batched tensor infos (not python values such as ``reconfigure``)."""
     out = Composite(shape=batch_size, device=device)
     for key, value in infos.items():
         if isinstance(value, Mapping):
             sub = _info_spec(value, batch_size, device)
             if not sub.is_empty():
                 out[key] = sub
+        elif not isinstance(value, torch.Tensor):
             continue
-        if not isinstance(value, torch.Tensor):
+        elif value.shape[: len(batch_size)] != batch_size:
             continue
-        if value.shape[: len(batch_size)] != batch_size:
-            continue
-        if value.dtype == torch.bool:
+        elif value.dtype == torch.bool:
             out[key] = _bool_spec(value.shape, device)
         else:
             out[key] = Unbounded(shape=value.shape, dtype=value.dtype, device=device)
     return out
 
 
-# --------------------------------------------------------------------------- helpers
 class _ResetSeeds:
-    """The seeds of the resets.
+    """The resets' seeds: ``s`` after ``set(s)``, then ``RandomState(s)``'s draws.
 
-    After :meth:`set` ``(s)``, :meth:`draw` gives ``s``, then the draws of
-    ``numpy.random.RandomState(s)``; ``None`` until seeded. ManiSkill seeds its
-    episode RNG (and forks torch's) only in a seeded ``reset``: an unseeded one
-    draws from the process's global RNG, so two envs of one process, or one env
-    after other code used that RNG, would not repeat. Partial resets take a draw
-    too, for the same reason.
+    ManiSkill seeds its episode RNG (and forks torch's) only in a seeded reset: an
+    unseeded one, partial ones too, would draw from the process's global RNG.
     """
 
     def __init__(self) -> None:
-        self._rng: np.random.RandomState | None = None
-        self._next: int | None = None
+        self.set(None)
 
     def set(self, seed: int | None) -> None:
-        if seed is None:
-            self._rng = self._next = None
-            return
-        self._next = int(seed)
-        self._rng = np.random.RandomState(int(seed) % 2**32)
+        self._next = None if seed is None else int(seed)
+        self._rng = None if seed is None else np.random.RandomState(int(seed) % 2**32)
 
     def draw(self) -> int | None:
         if self._rng is None:
             return None
-        if self._next is not None:
-            seed, self._next = self._next, None
-            return seed
-        return int(self._rng.randint(2**31))
+        seed, self._next = self._next, None
+        return int(self._rng.randint(2**31)) if seed is None else seed
 
 
 def _mapped(obs: Mapping[str, Any], leaf: Callable) -> dict:
@@ -312,10 +240,10 @@ def _mapped(obs: Mapping[str, Any], leaf: Callable) -> dict:
 
 
 def _sim_action(value: Any, shape: Any, name: Any, unbatched: bool, device: Any) -> Any:
-    """An action entry as ManiSkill takes it.
+    """An action entry as ManiSkill takes it, its shape checked first.
 
-    On ``device`` (None: where it is), with the env dim of an unbatched env, its shape
-    checked first (ManiSkill would broadcast a misshaped one).
+    With the env dim, on ``device`` (None: where it is). ManiSkill would broadcast a
+    misshaped action.
     """
     if value.shape != shape:
         what, hint = f"action {name!r}", ""
@@ -329,11 +257,6 @@ def _sim_action(value: Any, shape: Any, name: Any, unbatched: bool, device: Any)
     return value if device is None else value.to(device)
 
 
-def _path(key: Any) -> str:
-    key = key if isinstance(key, tuple) else (key,)
-    return "".join(f"[{k!r}]" for k in key)
-
-
 def _tensor_tree(tree: Mapping, device: torch.device | None = None) -> dict:
     """A nested dict of tensors as plain dicts of normal tensors, copied."""
     return {
@@ -344,47 +267,29 @@ def _tensor_tree(tree: Mapping, device: torch.device | None = None) -> dict:
     }
 
 
-# --------------------------------------------------------------------------- wrapper
 class ManiSkillWrapper(_EnvWrapper):
     """TorchRL wrapper for a ManiSkill 3 env made with ``gym.make``.
 
     ManiSkill (https://github.com/haosulab/ManiSkill) simulates robot manipulation
-    tasks on SAPIEN, many envs in one process on the GPU sim, one on the CPU sim.
-    The batch is ManiSkill's ``num_envs``:
+    tasks on SAPIEN: many envs in one process on the GPU sim, one on the CPU sim. The
+    batch is ManiSkill's ``num_envs``. A Box observation space goes to
+    ``"observation"``, a Dict one keeps its nested keys and dtypes (images stay
+    ``uint8``); a Dict action space (multi-agent tasks) reads ``("action", <agent>)``.
+    ``"reward"`` is ``[*batch, 1]`` float32 for every task (some report bool or
+    float64 rewards), the done flags ``[*batch, 1]`` bool, truncation being
+    ManiSkill's time limit. The tensor infos
+    (``"success"``, ``"elapsed_steps"``...) are observation entries, read from
+    ``get_info()`` without stepping the env (``"info_<key>"`` where a key collides).
 
-    - a Box observation space goes to ``"observation"``; a Dict observation space
-      (``obs_mode="state_dict"``, ``"rgb"``, ``"rgbd"``, ``"sensor_data"``...) keeps
-      its nested keys and dtypes (images stay ``uint8``);
-    - a Box action space reads ``"action"``, a Dict one (multi-agent tasks)
-      ``("action", <agent>)``;
-    - ``"reward"`` is ``[*batch, 1]`` float32 for every task (some report bool or
-      float64 rewards), ``"terminated"`` / ``"truncated"`` / ``"done"`` are
-      ``[*batch, 1]`` bool, truncation being ManiSkill's time limit;
-    - the tensor infos (``"success"``, ``"fail"``, ``"elapsed_steps"``...) are
-      observation entries, learnt from ``get_info()`` without stepping the env; an
-      info key that collides with another key is stored as ``"info_<key>"``.
-
-    Every output is on ``env.device``, which defaults to the sim's device. Where
-    ManiSkill hands out buffers that it writes into later (the GPU sim, and the CPU
-    sim rendering with ``sapien_cuda``), outputs are copied once; elsewhere they are
-    ManiSkill's own tensors.
-
-    Partial resets (a ``"_reset"`` mask) reset the masked envs only, through
-    ManiSkill's ``options={"env_idx": ...}``. After :meth:`set_seed` ``(s)`` the
-    next reset is ``reset(seed=s)`` and each later one, partial or full, is seeded
-    with the next draw of ``numpy.random.RandomState(s)`` (ManiSkill's seeded
-    partial reset also reseeds the episode RNG of the envs it leaves running).
-    :meth:`get_state` saves the sim state and ``env.reset(td, set_state=True,
-    scene_state=state)`` (or :meth:`reset_to_state`) restores it, as Isaac Lab's
-    wrapper does.
-
-    ``frame_skip=k`` steps each action up to ``k`` times, sums the rewards (a bool
-    reward counts its steps) and stops as soon as any env is done, as
-    :class:`~torchrl.envs.GymLikeEnv` does. With many envs one env's end stops every
-    env's repeat: at GPU batch sizes most steps are then single ones, unlike
-    ManiSkill's ``ActionRepeatWrapper``, which repeats each env until its own end.
-    Auto-resetting envs (``ManiSkillVectorEnv(auto_reset=True)``, gymnasium's
-    ``Autoreset``) are refused: TorchRL resets done envs itself.
+    Every output is on ``env.device``, copied only where ManiSkill writes into its
+    tensors later (the GPU sim, the CPU sim rendering with ``sapien_cuda``) or where
+    ``env.device`` is not the sim's. Partial resets use ManiSkill's
+    ``options={"env_idx": ...}``. After :meth:`set_seed` ``(s)`` the next reset is
+    ``reset(seed=s)`` and each later one, partial or full, takes the next draw of
+    ``numpy.random.RandomState(s)``. :meth:`get_state` saves the sim state and
+    ``env.reset(td, set_state=True, scene_state=state)`` restores it, as Isaac Lab's
+    wrapper does. Auto-resetting envs (``ManiSkillVectorEnv(auto_reset=True)``,
+    gymnasium's ``Autoreset``) are refused: TorchRL resets done envs itself.
 
     Args:
         env (gymnasium.Env): a ManiSkill env, e.g. ``gym.make("PickCube-v1")``,
@@ -406,7 +311,11 @@ class ManiSkillWrapper(_EnvWrapper):
             ``"pixels"``.
         info_keys (list of str, optional): the info entries to keep. Defaults to
             every tensor entry of ``get_info()``.
-        frame_skip (int, optional): see above. Defaults to ``1``.
+        frame_skip (int, optional): steps each action up to ``frame_skip`` times,
+            sums the rewards (a bool reward counts its steps) and stops as soon as
+            any env is done, as :class:`~torchrl.envs.GymLikeEnv` does: with many
+            envs most steps are then single ones, unlike ManiSkill's
+            ``ActionRepeatWrapper``. Defaults to ``1``.
         allow_done_after_reset (bool, optional): passed to
             :class:`~torchrl.envs.EnvBase`. Defaults to ``False``.
 
@@ -433,21 +342,13 @@ class ManiSkillWrapper(_EnvWrapper):
 
     git_url = "https://github.com/haosulab/ManiSkill"
     libname = "mani_skill"
-    # _step loops over wrapper_frame_skip itself (GymLikeEnv's convention).
-    _has_frame_skip = True
-    # ``env.reset(td, set_state=True, scene_state=...)``: TorchRL's deterministic
-    # reset, with the snapshot passed as Isaac Lab's wrapper takes it.
-    _supports_set_state = True
-
-    _lib = None
+    _has_frame_skip = True  # _step repeats the action itself, as GymLikeEnv does
+    _supports_set_state = True  # reset(td, set_state=True, scene_state=...)
 
     @_classproperty
     def lib(cls):
-        if cls._lib is not None:
-            return cls._lib
         import mani_skill
 
-        cls._lib = mani_skill
         return mani_skill
 
     @_classproperty
@@ -496,10 +397,10 @@ class ManiSkillWrapper(_EnvWrapper):
             **kwargs,
         )
 
-    # --------------------------------------------------------------- build
     def _check_kwargs(self, kwargs: dict) -> None:
-        """What TorchRL cannot serve in the env to wrap."""
+        from gymnasium.wrappers import Autoreset
         from mani_skill.envs.sapien_env import BaseEnv
+        from mani_skill.vector.wrappers.gymnasium import ManiSkillVectorEnv
 
         env = kwargs["env"]
         base = env.unwrapped
@@ -513,7 +414,14 @@ class ManiSkillWrapper(_EnvWrapper):
                 "from_pixels=True needs an env made with render_mode='rgb_array' "
                 f"(got render_mode={base.render_mode!r})."
             )
-        resetter = _auto_resetting_wrapper(env)
+        layers = _layers(env)
+        vector = [x for x in layers if isinstance(x, ManiSkillVectorEnv)]
+        if any(x.auto_reset for x in vector):
+            resetter = "ManiSkillVectorEnv(auto_reset=True)"
+        elif any(isinstance(x, Autoreset) for x in layers):
+            resetter = "gymnasium.wrappers.Autoreset"
+        else:
+            resetter = None
         if resetter is not None:
             raise ValueError(
                 f"{resetter} resets done envs inside its step and returns the next "
@@ -522,16 +430,19 @@ class ManiSkillWrapper(_EnvWrapper):
                 "or ManiSkillVectorEnv(env, auto_reset=False)), or use ManiSkillEnv."
             )
         freq = getattr(base, "reconfiguration_freq", 0) or 0
-        if base.num_envs > 1 and freq:
-            if not _maniskill_layer(env, "ignore_terminations"):
-                raise ValueError(
-                    f"reconfiguration_freq={freq} with num_envs={base.num_envs}: "
-                    "ManiSkill cannot reconfigure some of its envs only, and TorchRL "
-                    "resets each done env on its own. Make the env with "
-                    "reconfiguration_freq=0, or wrap it in ManiSkillVectorEnv(env, "
-                    "auto_reset=False, ignore_terminations=True) for episodes that "
-                    "all end together at the time limit."
-                )
+        if (
+            base.num_envs > 1
+            and freq
+            and not any(x.ignore_terminations for x in vector)
+        ):
+            raise ValueError(
+                f"reconfiguration_freq={freq} with num_envs={base.num_envs}: "
+                "ManiSkill cannot reconfigure some of its envs only, and TorchRL "
+                "resets each done env on its own. Make the env with "
+                "reconfiguration_freq=0, or wrap it in ManiSkillVectorEnv(env, "
+                "auto_reset=False, ignore_terminations=True) for episodes that "
+                "all end together at the time limit."
+            )
 
     def _build_env(self, env: Any, **kwargs: Any) -> Any:
         if kwargs:
@@ -599,8 +510,10 @@ class ManiSkillWrapper(_EnvWrapper):
         import gymnasium as gym
 
         base = env.unwrapped
-        obs_space = _wrapper_attr(env, "single_observation_space")
-        act_space = _wrapper_attr(env, "single_action_space")
+        # The spaces of the outermost gym wrapper that has them.
+        space = getattr(env, "get_wrapper_attr", lambda name: getattr(env, name))
+        obs_space = space("single_observation_space")
+        act_space = space("single_action_space")
         batch, device = torch.Size([base.num_envs]), self.device
         obs_spec = _space_to_spec(obs_space, batch, device)
         if not isinstance(obs_spec, Composite):
@@ -608,14 +521,27 @@ class ManiSkillWrapper(_EnvWrapper):
         if self._pixels_only:
             obs_spec = Composite(shape=batch, device=device)
         if self._from_pixels:
+            # One render camera's size (no public name in ManiSkill), else a render.
+            cameras = getattr(base, "_human_render_camera_configs", {}) or {}
+            if len(cameras) == 1:
+                (cfg,) = cameras.values()
+                frame = (cfg.height, cfg.width, 3)
+            else:
+                frame = tuple(base.render().shape[-3:])
             obs_spec[self._pixels_key] = Bounded(
-                low=0,
-                high=255,
-                shape=batch + torch.Size(_render_frame_shape(base)),
-                dtype=torch.uint8,
-                device=device,
+                low=0, high=255, shape=batch + frame, dtype=torch.uint8, device=device
             )
-        info_spec = _info_spec(self._infos(base), batch, device)
+        # From get_info(): a probe step or reset would change later seeded resets.
+        infos, asked = base.get_info(), self._info_keys_asked
+        if asked is not None:
+            missing = [k for k in asked if k not in infos]
+            if missing:
+                raise ValueError(
+                    f"info_keys {missing} are not reported by {_env_id(base)}: "
+                    f"available info keys are {sorted(infos)}."
+                )
+            infos = {k: infos[k] for k in asked}
+        info_spec = _info_spec(infos, batch, device)
         reserved = set(obs_spec.keys()) | _RESERVED_KEYS
         self._info_map: list[tuple[str, str]] = []
         for key in info_spec.keys():
@@ -627,9 +553,7 @@ class ManiSkillWrapper(_EnvWrapper):
         )
         flag = _bool_spec(batch + (1,), device)
         done_spec = Composite(
-            done=flag,
-            terminated=flag.clone(),
-            truncated=flag.clone(),
+            {k: flag.clone() for k in ("done", "terminated", "truncated")},
             shape=batch,
             device=device,
         )
@@ -653,21 +577,6 @@ class ManiSkillWrapper(_EnvWrapper):
         # env.action_key, read once: the property costs a microsecond a step.
         self._action_key = self.action_key if self._action_names is None else None
 
-    def _infos(self, base: Any) -> dict[str, Any]:
-        # From get_info(): a probe step or reset would change later seeded resets.
-        infos = base.get_info()
-        asked = self._info_keys_asked
-        if asked is None:
-            return infos
-        missing = [k for k in asked if k not in infos]
-        if missing:
-            raise ValueError(
-                f"info_keys {missing} are not reported by {_env_id(base)}: "
-                f"available info keys are {sorted(infos)}."
-            )
-        return {k: infos[k] for k in asked}
-
-    # --------------------------------------------------------------- step, reset
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         # The sim's device, where the actions go (None: they are there already).
         sim = None if self.device == self._sim_device else self._sim_device
@@ -748,7 +657,6 @@ class ManiSkillWrapper(_EnvWrapper):
     def _set_seed(self, seed: int | None) -> None:
         self._seeds.set(seed)
 
-    # --------------------------------------------------------------- entries
     def _to_source(
         self,
         obs: Any,
@@ -759,10 +667,8 @@ class ManiSkillWrapper(_EnvWrapper):
     ) -> dict:
         """The entries of a reset (no reward) or a step, as a nested dict.
 
-        ManiSkill's own tensors, where they are: the env dim dropped for batch ``[]``,
-        rewards as float32 (some tasks report bool or float64 ones), ManiSkill's
-        ``[B]`` reward and flags as ``[B, 1]`` (an unbatched env's ``[1]`` as they
-        are). :meth:`_to_device` then moves or copies them.
+        ManiSkill's own tensors: the env dim dropped for batch ``[]``, the reward as
+        float32, the ``[B]`` reward and flags as ``[B, 1]``.
         """
         unbatched = self._unbatched
         if self._pixels_only:
@@ -796,13 +702,12 @@ class ManiSkillWrapper(_EnvWrapper):
         return source
 
     def _to_device(self, source: dict) -> dict:
-        """The entries of :meth:`_to_source` on ``env.device``, each copied at most once.
+        """The entries of :meth:`_to_source` on ``env.device``.
 
-        Every leaf is copied where ManiSkill writes into its tensors later (the GPU
-        sim; the CPU sim rendering with ``sapien_cuda``) or ``env.device`` is not the
-        sim's; otherwise only the infos are, which may be the sim's own state (the CPU
-        sim's ``elapsed_steps``). A subclass may move the entries otherwise (e.g. all
-        of a step's in one transfer).
+        Every leaf is copied where ManiSkill writes into its tensors later or
+        ``env.device`` is not the sim's, else only the infos (the CPU sim's
+        ``elapsed_steps`` is its own state). A subclass may move them otherwise (e.g.
+        a step's in one transfer).
         """
         device = self.device
         if self._copies or device != self._sim_device:
@@ -823,7 +728,6 @@ class ManiSkillWrapper(_EnvWrapper):
             frame = frame.to(self.device, copy=True)
         return frame
 
-    # --------------------------------------------------------------- saved states
     def get_state(self) -> TensorDictBase:
         """Returns every env's sim state, a TensorDict of this env's batch.
 
@@ -858,6 +762,9 @@ class ManiSkillWrapper(_EnvWrapper):
     ) -> TensorDictBase:
         """Resets every env, or those of ``tensordict``'s ``"_reset"`` mask, to a state.
 
+        ``env.reset(tensordict, set_state=True, scene_state=state)``; called on a
+        :class:`~torchrl.envs.TransformedEnv`, it skips the transforms.
+
         Args:
             state (TensorDictBase or dict): :meth:`get_state`'s layout, one row per
                 env, or one env's state without the batch dim (a ManiSkill trajectory
@@ -870,11 +777,6 @@ class ManiSkillWrapper(_EnvWrapper):
 
         Returns:
             The reset's TensorDict, as :meth:`~torchrl.envs.EnvBase.reset` returns it.
-
-        The same as ``env.reset(tensordict, set_state=True, scene_state=state)``. It
-        is a method of this env: called on a :class:`~torchrl.envs.TransformedEnv`, it
-        reaches this env and skips the transforms; ``transformed.reset(td,
-        set_state=True, scene_state=state)`` runs them.
         """
         return self.reset(tensordict, set_state=True, scene_state=state, **kwargs)
 
@@ -902,26 +804,28 @@ class ManiSkillWrapper(_EnvWrapper):
         out = TensorDict(batch_size=[num_envs])
         for key in sorted(want, key=str):
             ref, value = row.get(key), states.get(key)
+            path = "".join(
+                f"[{k!r}]" for k in (key if isinstance(key, tuple) else (key,))
+            )
             if value.shape == ref.shape:  # one env's state, for every env
                 value = value.expand(num_envs, *ref.shape)
             elif value.shape != (num_envs, *ref.shape):
                 raise ValueError(
-                    f"scene_state{_path(key)} has shape {list(value.shape)}; this "
-                    f"env takes {[num_envs, *ref.shape]} (one row per env) or "
-                    f"{list(ref.shape)} (one env's state)."
+                    f"scene_state{path} has shape {list(value.shape)}; this env takes "
+                    f"{[num_envs, *ref.shape]} (one row per env) or {list(ref.shape)} "
+                    "(one env's state)."
                 )
             if value.dtype != ref.dtype and not (
                 value.is_floating_point() and ref.is_floating_point()
             ):
                 raise ValueError(
-                    f"scene_state{_path(key)} has dtype {value.dtype}; this env's "
-                    f"is {ref.dtype}."
+                    f"scene_state{path} has dtype {value.dtype}; this env's is "
+                    f"{ref.dtype}."
                 )
             # A plain tensor (not a memory-mapped one), copied: the sim reads it later.
             out.set(key, value.as_subclass(torch.Tensor).to(ref.dtype, copy=True))
         return out
 
-    # --------------------------------------------------------------- misc
     def __repr__(self) -> str:
         return (
             f"{type(self).__name__}(env={_env_id(self._env)}, "
