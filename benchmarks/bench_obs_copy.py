@@ -2,7 +2,7 @@
 
 On the GPU sim (and the CPU sim rendering with ``sapien_cuda``) ManiSkill hands out buffers that
 its next step or render overwrites, so the wrapper copies every observation entry it returns, once,
-onto ``env.device`` (``envs/maniskill.py``, ``_leaf``). This times that copy on the CPU, with the
+onto ``env.device`` (``envs/maniskill.py``, ``ManiSkillWrapper._to_device``). This times that copy on the CPU, with the
 wrapper's own code, on PickCube-v1's real ``obs_mode="rgb"`` observation at 128 x 128 (agent and
 extra state, camera parameters, ``sensor_data/base_camera/rgb`` uint8), tiled to the batch:
 
@@ -76,12 +76,16 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     from maniskill_torchrl._private import new_tensordict
-    from maniskill_torchrl.envs.maniskill import _leaf, _mapped
+    from maniskill_torchrl.envs.maniskill import _mapped
 
     logging.getLogger("mani_skill").setLevel(logging.ERROR)
     torch.set_num_threads(1)
     print(machine_line())
-    copy = _leaf(torch.device("cpu"), False, True)
+    cpu = torch.device("cpu")
+
+    def copy(x: torch.Tensor) -> torch.Tensor:  # ManiSkillWrapper._to_device's copy of each leaf
+        return x.to(cpu, copy=True)
+
     cam = dict(width=args.size, height=args.size)
     env = gym.make("PickCube-v1", num_envs=1, obs_mode="rgb", sensor_configs=cam)
     obs, _ = env.reset(seed=0)
