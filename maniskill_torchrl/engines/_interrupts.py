@@ -15,8 +15,8 @@ Nothing lighter holds it: ``pthread_sigmask`` blocks SIGINT in the calling threa
 hands it to another thread of the process (torch's, a collector's), whose C handler still asks the main
 thread to run the Python one at its next bytecode; and no read written in Python is whole under a
 ``KeyboardInterrupt`` (one may come between ``os.read`` returning and its bytes being kept). The hold costs
-two ``signal`` calls of the C module per outermost block (no ``Enum`` conversion), 1-2 us, about 3 of them per
-send and receive; a block inside another costs a counter (RESULTS.md, "Collection").
+two ``signal`` calls of the C module per outermost block (no ``Enum`` conversion), about 1 us; a block
+inside another costs a counter (RESULTS.md, "Collection").
 """
 
 from __future__ import annotations
