@@ -42,7 +42,6 @@ import torch
 
 from maniskill_torchrl._internal.assets import check_assets
 from maniskill_torchrl._internal.mp import preload_forkserver
-from maniskill_torchrl.engines._interrupts import HELD
 from maniskill_torchrl.engines._pool import STEP, STEP_RESET, WorkerFailure, WorkerPool
 from maniskill_torchrl.engines._shared import Layout, SharedBlock
 from maniskill_torchrl.engines._trace import COLLECT_END, HERE_END, SEND, StepTrace, summarize
@@ -292,21 +291,13 @@ class CPUVectorEnv:
         """``send(pool)`` to the workers, ``here()`` on sub-env 0 while they work, then
         ``collect(pool)``; returns ``collect``'s result. ``send=None``: no worker takes part;
         ``here=None``: sub-env 0 does not. The workers' answers are collected even when sub-env
-        0 raises, so that none is left pending; a worker that raised or died closes the env. Ctrl-C comes
-        once the call is done (a second one at once): cut between the sends, or inside a read, it would
-        leave answers unread, or half read, for the next call."""
+        0 raises, so that none is left pending; a worker that raised or died closes the env."""
         self._check_open(call)
         if self._state.any():
             raise RuntimeError(
                 f"{self!r}: {call}() steps every sub-env together, and sub-envs {sorted(self.pending)} have a "
                 "split-phase call pending: receive them first (step_recv / reset_recv)."
             )
-        if send is None or self._pool is None:  # no pipe to read: nothing to hold
-            return self._together_held(call, send, here, collect)
-        with HELD:
-            return self._together_held(call, send, here, collect)
-
-    def _together_held(self, call: str, send: Any, here: Any, collect: Any) -> Any:
         pool = self._pool if send is not None else None
         if pool is not None:
             try:
@@ -370,12 +361,11 @@ class CPUVectorEnv:
             if len(seeds) != len(rows):
                 raise ValueError(f"step_send: {len(seeds)} reset seeds for {len(rows)} sub-envs.")
             block.seeds[rows] = seeds if isinstance(seeds, np.ndarray) else [-1 if s is None else int(s) for s in seeds]
-        with HELD:  # woken and noted woken, or neither (Ctrl-C between would leave answers unread)
-            try:
-                self._pool.wake_some(rows.tolist(), STEP_RESET if autoreset else STEP)
-            except (EOFError, OSError) as err:
-                raise self._worker_failed("step_send", err) from err
-            self._sent(rows, STEPPING_RESET if autoreset else STEPPING)
+        try:
+            self._pool.wake_some(rows.tolist(), STEP_RESET if autoreset else STEP)
+        except (EOFError, OSError) as err:
+            raise self._worker_failed("step_send", err) from err
+        self._sent(rows, STEPPING_RESET if autoreset else STEPPING)
 
     def step_recv(
         self,
@@ -433,13 +423,12 @@ class CPUVectorEnv:
         seeds = [None] * len(rows) if seeds is None else list(seeds)
         if len(seeds) != len(rows):
             raise ValueError(f"reset_send: {len(seeds)} seeds for {len(rows)} sub-envs.")
-        with HELD:
-            try:
-                for i, seed in zip(rows.tolist(), seeds):
-                    self._pool.send(i, "reset", seed=None if seed is None else int(seed), options=None)
-            except (EOFError, OSError) as err:
-                raise self._worker_failed("reset_send", err) from err
-            self._sent(rows, RESETTING)
+        try:
+            for i, seed in zip(rows.tolist(), seeds):
+                self._pool.send(i, "reset", seed=None if seed is None else int(seed), options=None)
+        except (EOFError, OSError) as err:
+            raise self._worker_failed("reset_send", err) from err
+        self._sent(rows, RESETTING)
 
     def reset_recv(
         self,
@@ -500,7 +489,6 @@ class CPUVectorEnv:
 
     def _sent(self, rows: np.ndarray, kind: int) -> None:
         self._state[rows] = kind
-        self._arrived[rows] = False
         self._waited_on[rows] = 0.0
         self._warned[rows] = False
 
@@ -526,14 +514,9 @@ class CPUVectorEnv:
         return rows
 
     def _read_answers(self, positions: list[int]) -> None:
-        """Reads the answers of the workers at ``positions`` (whatever each was sent; they are in their
-        pipes already), each read and noted arrived with Ctrl-C held (``engines/_interrupts.py``); a worker
-        that failed closes the env."""
+        """Reads the answers of the workers at ``positions`` (whatever each was sent); a worker that
+        failed closes the env."""
         state, pool = self._state, self._pool
-        with HELD:
-            self._read_held(positions, state, pool)
-
-    def _read_held(self, positions: list[int], state: np.ndarray, pool: WorkerPool) -> None:
         try:
             for i in positions:
                 if state[i] == RESETTING:
@@ -611,8 +594,6 @@ class CPUVectorEnv:
         taken = np.flatnonzero(arrived & mine)
         if taken.size > limit:  # the first to arrive
             taken = np.sort(taken[np.argsort(self._arrival[taken], kind="stable")[:limit]])
-        # Idle first: a Ctrl-C between the two leaves an idle sub-env marked arrived, which nothing reads
-        # (a receive looks at the sub-envs with a call under way, and a send clears the mark).
         self._state[taken] = IDLE
         arrived[taken] = False
         return taken
