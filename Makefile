@@ -1,6 +1,6 @@
 # maniskill_torchrl developer targets. Run `make` for help.
 .DEFAULT_GOAL := help
-.PHONY: help setup test test-pictures test-examples test-sota test-readme test-ray test-model test-upstream test-cuda-double test-registry test-nightly lint docs demo bench clean gpu-kit gpu-check
+.PHONY: help setup test test-pictures test-slow test-examples test-sota test-readme test-ray test-model test-upstream test-cuda-double test-registry test-nightly lint docs demo bench clean gpu-kit gpu-check
 
 # MANISKILL=release (default: mani-skill 3.0.x, in .venv) or nightly (mani-skill-nightly, in .venv-nightly).
 MANISKILL   ?= release
@@ -27,6 +27,7 @@ help:
 	@echo "  make setup   create .venv and install the package (+ test, demo, distributed, docs, hydra, maniskill extras); checks Vulkan"
 	@echo "  make test    run the test suite, in 2 processes (PYTEST_ARGS=... passed to pytest; WORKERS=1: serially)"
 	@echo "  make test-pictures  the tests that render (rgb, from_pixels, render()), left out of make test (-m pictures, ~1 min)"
+	@echo "  make test-slow  the suite's slowest tests (fresh interpreters, collectors' workers), left out of make test (-m slow, ~1.5 min)"
 	@echo "  make test-examples  the examples end to end, as users run them: the demo CLI, PPO, SAC, BC, evaluation, TorchRL's trainers (tests/examples, ~2.5 min)"
 	@echo "  make test-sota  TorchRL's own sota trainer scripts (tests/configs/sota), unmodified, on ManiSkill, and a live env in every collector (tests/examples/test_sota_trainers.py, ~6 min)"
 	@echo "  make test-readme  the README walked as a newcomer: fresh venv from the wheel, each command from a temp folder (~8 min)"
@@ -57,7 +58,12 @@ setup:
 SUITE = tests --ignore=tests/registry --ignore=tests/docs --ignore=tests/gpu/test_cuda_machine.py --ignore=tests/upstream \
 	--ignore=tests/examples --ignore=tests/readme
 test: setup lint
-	$(VENV)/bin/python -m pytest -q --durations=15 $(call xdist,loadfile) $(SUITE) -m "not pictures" $(PYTEST_ARGS)
+	$(VENV)/bin/python -m pytest -q --durations=15 $(call xdist,loadfile) $(SUITE) -m "not pictures and not slow" $(PYTEST_ARGS)
+
+# The suite's slowest tests (marker `slow`): each starts fresh interpreters or collectors' worker processes,
+# which import torch, TorchRL and ManiSkill (10-40 s a test on 2 cores; about 1.5 minutes of the suite).
+test-slow: setup
+	$(VENV)/bin/python -m pytest -q --durations=5 $(call xdist,loadfile) $(SUITE) -m "slow and not pictures" $(PYTEST_ARGS)
 
 # The suite's tests that render (marker `pictures`): SAPIEN's render tables cost seconds of CPU in
 # each process that renders (Mesa's lavapipe here), about a minute of the suite on 2 cores.

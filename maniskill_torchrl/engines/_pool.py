@@ -3,7 +3,7 @@ them, wake them for a step, send them the rarer calls, collect their answers, an
 fails, say which and stop them all (the others would wait forever for a sub-env that is gone).
 
 One duplex pipe per worker; the worker's loop (``_worker.serve``, given as ``target``) is the
-other end. A step is one byte each way (:data:`STEP`, :data:`DONE`); the data lies in the shared
+other end. A step is one byte each way (``_protocol.py``); the data lies in the shared
 block (``_shared.py``). Like ``cpu_vector.py``, this module imports neither TorchRL nor the rest
 of the library.
 """
@@ -17,13 +17,12 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-__all__ = ["DONE", "STEP", "STEP_RESET", "WorkerFailure", "WorkerPool"]
+import numpy as np
 
-# A step crosses a worker's pipe as one byte each way: the parent's wake, the worker's done.
-# STEP_RESET (split-phase engines): step, and reset at once if that step ended the episode.
-STEP, DONE, STEP_RESET = b"s", b"k", b"a"
-# Seconds an interrupted wait still waits for a worker's answer to its call (WorkerPool._settle).
-_SETTLE_S = 10.0
+from maniskill_torchrl.engines._interrupts import HELD
+from maniskill_torchrl.engines._protocol import DONE, STEP, STEP_RESET
+
+__all__ = ["DONE", "STEP", "STEP_RESET", "WorkerFailure", "WorkerPool"]
 
 
 class WorkerFailure(Exception):
@@ -58,6 +57,10 @@ class WorkerPool:
         for i, pipe in enumerate(self.pipes):
             self._selector.register(pipe, selectors.EVENT_READ, i)
         self.closed = False
+        #: the workers that owe an answer: set with each message sent, cleared with each answer read, both
+        #: with Ctrl-C held, so it is exact wherever a KeyboardInterrupt lands; :meth:`catch_up` reads the
+        #: answers a call cut by Ctrl-C left owed
+        self.owed = np.zeros(len(self.pipes), dtype=np.bool_)
         #: seconds spent waiting in :meth:`readable` (the split phase's idle time in the parent)
         self.waited = 0.0
 
@@ -73,27 +76,25 @@ class WorkerPool:
     # ------------------------------------------------------------- a step
     def wake(self) -> None:
         """Every worker steps with its row of the block's actions."""
-        for pipe in self.pipes:
-            pipe.send_bytes(STEP)
+        with HELD:
+            for pipe in self.pipes:
+                pipe.send_bytes(STEP)
+            self.owed[:] = True
 
     def wait(self) -> None:
-        """Returns once every worker has written its step. Interrupted (Ctrl-C), it still reads the
-        answers of the workers it had not heard from, so that the next call starts in step."""
-        i = 0
-        try:
-            for i, pipe in enumerate(self.pipes):
-                answer = pipe.recv_bytes()
-                if answer != DONE:
-                    self._raise(i, answer)
-        except KeyboardInterrupt:
-            self._settle(range(i, len(self.pipes)))
-            raise
+        """Returns once every worker has written its step (interrupted: as :meth:`_gather`)."""
+        for i, answer in self._gather(range(len(self.pipes))).items():
+            if answer != DONE:
+                self._raise(i, answer)
 
     # ------------------------------------------------------------- split phase
     def wake_some(self, positions: list[int], message: bytes) -> None:
         """The workers at ``positions`` get ``message`` (:data:`STEP` or :data:`STEP_RESET`)."""
-        for i in positions:
-            self.pipes[i].send_bytes(message)
+        pipes, owed = self.pipes, self.owed
+        with HELD:
+            for i in positions:
+                pipes[i].send_bytes(message)
+                owed[i] = True
 
     def readable(self, timeout: float | None) -> list[int]:
         """The positions whose worker has an answer to read (waits up to ``timeout`` s for one;
@@ -104,52 +105,75 @@ class WorkerPool:
         return ready
 
     def take_done(self, i: int) -> None:
-        """Worker ``i``'s answer to a step: :data:`DONE`, or its failure raised."""
-        answer = self.pipes[i].recv_bytes()
+        """Worker ``i``'s answer to a step (in its pipe already): :data:`DONE`, or its failure raised."""
+        with HELD:
+            answer = self.pipes[i].recv_bytes()
+            self.owed[i] = False
         if answer != DONE:
             self._raise(i, answer)
 
     def take_answer(self, i: int) -> Any:
-        """Worker ``i``'s answer to a pickled command (its value), or its failure raised."""
-        return self._answer(i)
+        """Worker ``i``'s answer to a pickled command (in its pipe already): its value, or its failure raised."""
+        with HELD:
+            answer = self.pipes[i].recv_bytes()
+            self.owed[i] = False
+        return self._value(i, answer)
 
     # ------------------------------------------------------------- other calls
     def send(self, i: int, command: str, *args: Any, **kwargs: Any) -> None:
         """``command`` to worker ``i`` (its position here, not its sub-env index)."""
-        self.pipes[i].send_bytes(pickle.dumps((command, args, kwargs), protocol=pickle.HIGHEST_PROTOCOL))
+        message = pickle.dumps((command, args, kwargs), protocol=pickle.HIGHEST_PROTOCOL)
+        with HELD:
+            self.pipes[i].send_bytes(message)
+            self.owed[i] = True
 
     def send_all(self, command: str, *args: Any, **kwargs: Any) -> None:
         message = pickle.dumps((command, args, kwargs), protocol=pickle.HIGHEST_PROTOCOL)
-        for pipe in self.pipes:
-            pipe.send_bytes(message)
+        with HELD:
+            for pipe in self.pipes:
+                pipe.send_bytes(message)
+            self.owed[:] = True
 
     def collect(self, positions: list[int]) -> list:
-        """The answers of the workers at ``positions``, in that order (interrupted: as :meth:`wait`)."""
-        out: list = []
-        try:
-            for i in positions:
-                out.append(self._answer(i))
-        except KeyboardInterrupt:
-            self._settle(positions[len(out) :])
-            raise
-        return out
+        """The answers of the workers at ``positions``, in that order (interrupted: as :meth:`_gather`)."""
+        answers = self._gather(positions)
+        return [self._value(i, answers[i]) for i in positions]
 
-    def _settle(self, positions: Any) -> None:
-        """Reads and drops the answers owed by the workers at ``positions`` (after an interrupted
-        wait: the workers ignore SIGINT and finish their call); a worker that is gone is skipped, and
-        one silent for ``_SETTLE_S`` s (its answer read already, when the interrupt came after it)."""
-        for i in positions:
-            try:
-                if self.pipes[i].poll(_SETTLE_S):
-                    self.pipes[i].recv_bytes()
-            except (EOFError, OSError):
-                pass
+    def _gather(self, positions: Any) -> dict[int, bytes]:
+        """The next message of each worker at ``positions``, each read whole: the wait stays open to
+        Ctrl-C and cuts nothing, and the answers it found are read with Ctrl-C held (``_interrupts.py``).
+        A ``KeyboardInterrupt`` leaves the answers still owed in :attr:`owed`, for :meth:`catch_up`."""
+        left = dict.fromkeys(positions)
+        got: dict[int, bytes] = {}
+        pipes, owed, select = self.pipes, self.owed, self._selector.select
+        while left:
+            ready = [key.data for key, _ in select(None)]
+            with HELD:
+                for i in ready:
+                    if i not in left:
+                        raise WorkerFailure(
+                            f"the worker of sub-env {self.indices[i]} sent an answer nobody waits for",
+                            "the engine is out of step with its workers (a bug: please report it)",
+                        )
+                    got[i] = pipes[i].recv_bytes()
+                    owed[i] = False
+                    del left[i]
+        return got
+
+    def catch_up(self, positions: Any = None) -> None:
+        """Reads and drops the answers owed by the workers at ``positions`` (all: None), left by a call
+        that Ctrl-C cut short (the workers ignore SIGINT and finish their call)."""
+        owed = np.flatnonzero(self.owed).tolist() if positions is None else [i for i in positions if self.owed[i]]
+        if owed:
+            self._gather(owed)
 
     def collect_all(self) -> list:
         return self.collect(list(range(len(self.pipes))))
 
-    def _answer(self, i: int) -> Any:
-        answer = self.pipes[i].recv_bytes()
+    def _answer(self, i: int) -> Any:  # a message no call asked for: the worker's first
+        return self._value(i, self.pipes[i].recv_bytes())
+
+    def _value(self, i: int, answer: bytes) -> Any:
         status, *value = pickle.loads(answer)
         if status == "error":
             self._raise(i, answer)

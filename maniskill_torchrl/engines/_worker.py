@@ -9,7 +9,7 @@ the picklable factory that builds the env in the worker (and the parent's own su
 writes its row the same way).
 
 Like ``cpu_vector.py``, this module imports neither TorchRL nor the rest of the library beyond
-``_internal``'s ManiSkill helpers and the pool's two step bytes (``_pool.py``) when it loads: the workers import it,
+``_internal``'s ManiSkill helpers and the step bytes (``_protocol.py``) when it loads: the workers import it,
 and start faster without them. A worker told to repeat actions imports ``_repeat`` (the gym shim's
 repeat step) then.
 """
@@ -32,7 +32,7 @@ import torch
 from maniskill_torchrl._internal.assets import no_asset_prompt
 from maniskill_torchrl._internal.rendering import default_render_backend, make_maniskill, render_frame_shape
 from maniskill_torchrl._internal.sim import maniskill_base_env, wrapper_attr
-from maniskill_torchrl.engines._pool import DONE, STEP, STEP_RESET
+from maniskill_torchrl.engines._protocol import DONE, STEP, STEP_RESET
 
 __all__ = [
     "OBS",

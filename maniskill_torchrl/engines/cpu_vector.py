@@ -42,6 +42,7 @@ import torch
 
 from maniskill_torchrl._internal.assets import check_assets
 from maniskill_torchrl._internal.mp import preload_forkserver
+from maniskill_torchrl.engines._interrupts import HELD
 from maniskill_torchrl.engines._pool import STEP, STEP_RESET, WorkerFailure, WorkerPool
 from maniskill_torchrl.engines._shared import Layout, SharedBlock
 from maniskill_torchrl.engines._trace import COLLECT_END, HERE_END, SEND, StepTrace, summarize
@@ -218,6 +219,7 @@ class CPUVectorEnv:
         # the caller between two receives is never the sub-env's) and whether it was warned about.
         self._state = np.zeros(int(num_envs), np.int8)
         self._arrived = np.zeros(int(num_envs), np.bool_)
+        self._cut_short = False  # a lockstep call under way, or cut short by Ctrl-C (see _catch_up)
         self._arrival = np.zeros(int(num_envs), np.int64)
         self._arrivals = 0
         self._waited_on = np.zeros(int(num_envs))
@@ -291,30 +293,45 @@ class CPUVectorEnv:
         """``send(pool)`` to the workers, ``here()`` on sub-env 0 while they work, then
         ``collect(pool)``; returns ``collect``'s result. ``send=None``: no worker takes part;
         ``here=None``: sub-env 0 does not. The workers' answers are collected even when sub-env
-        0 raises, so that none is left pending; a worker that raised or died closes the env."""
+        0 raises, so that none is left pending; a worker that raised or died closes the env. A Ctrl-C
+        during the sends comes once they are all sent, and the answers are still collected."""
         self._check_open(call)
         if self._state.any():
             raise RuntimeError(
                 f"{self!r}: {call}() steps every sub-env together, and sub-envs {sorted(self.pending)} have a "
                 "split-phase call pending: receive them first (step_recv / reset_recv)."
             )
+        if self._cut_short:  # a lockstep call Ctrl-C cut short: its answers first
+            self._catch_up()
         pool = self._pool if send is not None else None
-        if pool is not None:
-            try:
-                send(pool)
-            except (EOFError, OSError, pickle.PicklingError, TypeError, AttributeError) as err:
-                raise self._worker_failed(call, err) from err
-        theirs = None
+        sent, theirs = False, None
         try:
+            if pool is not None:
+                try:
+                    with HELD:  # all sent and noted, or none
+                        send(pool)
+                        sent = self._cut_short = True
+                except (EOFError, OSError, pickle.PicklingError, TypeError, AttributeError) as err:
+                    raise self._worker_failed(call, err) from err
             if here is not None and self._local is not None:
                 here()
         finally:
-            if pool is not None:
+            if sent:
                 try:
                     theirs = collect(pool)
                 except (EOFError, OSError, WorkerFailure) as err:
                     raise self._worker_failed(call, err) from getattr(err, "error", None) or err
+                self._cut_short = False
         return theirs
+
+    def _catch_up(self) -> None:
+        """Reads and drops the answers a lockstep call cut short by Ctrl-C left in the pipes (a
+        ``KeyboardInterrupt`` may land on any line; the pool's :attr:`~WorkerPool.owed` says which)."""
+        try:
+            self._pool.catch_up()
+        except (EOFError, OSError, WorkerFailure) as err:
+            raise self._worker_failed("catch up after Ctrl-C", err) from err
+        self._cut_short = False
 
     def step(
         self, action: torch.Tensor | Mapping[str, torch.Tensor]
@@ -361,11 +378,12 @@ class CPUVectorEnv:
             if len(seeds) != len(rows):
                 raise ValueError(f"step_send: {len(seeds)} reset seeds for {len(rows)} sub-envs.")
             block.seeds[rows] = seeds if isinstance(seeds, np.ndarray) else [-1 if s is None else int(s) for s in seeds]
-        try:
-            self._pool.wake_some(rows.tolist(), STEP_RESET if autoreset else STEP)
-        except (EOFError, OSError) as err:
-            raise self._worker_failed("step_send", err) from err
-        self._sent(rows, STEPPING_RESET if autoreset else STEPPING)
+        with HELD:  # woken and noted woken, or neither (between, answers would be left unread)
+            try:
+                self._pool.wake_some(rows.tolist(), STEP_RESET if autoreset else STEP)
+            except (EOFError, OSError) as err:
+                raise self._worker_failed("step_send", err) from err
+            self._sent(rows, STEPPING_RESET if autoreset else STEPPING)
 
     def step_recv(
         self,
@@ -423,12 +441,13 @@ class CPUVectorEnv:
         seeds = [None] * len(rows) if seeds is None else list(seeds)
         if len(seeds) != len(rows):
             raise ValueError(f"reset_send: {len(seeds)} seeds for {len(rows)} sub-envs.")
-        try:
-            for i, seed in zip(rows.tolist(), seeds):
-                self._pool.send(i, "reset", seed=None if seed is None else int(seed), options=None)
-        except (EOFError, OSError) as err:
-            raise self._worker_failed("reset_send", err) from err
-        self._sent(rows, RESETTING)
+        with HELD:
+            try:
+                for i, seed in zip(rows.tolist(), seeds):
+                    self._pool.send(i, "reset", seed=None if seed is None else int(seed), options=None)
+            except (EOFError, OSError) as err:
+                raise self._worker_failed("reset_send", err) from err
+            self._sent(rows, RESETTING)
 
     def reset_recv(
         self,
@@ -489,6 +508,7 @@ class CPUVectorEnv:
 
     def _sent(self, rows: np.ndarray, kind: int) -> None:
         self._state[rows] = kind
+        self._arrived[rows] = False
         self._waited_on[rows] = 0.0
         self._warned[rows] = False
 
@@ -504,6 +524,8 @@ class CPUVectorEnv:
             raise IndexError(f"{call}: sub-env indices {rows.tolist()} out of range for {self.num_envs} sub-envs.")
         if rows.size > 1 and np.unique(rows).size != rows.size:
             raise ValueError(f"{call}: sub-env indices {rows.tolist()} repeat an index.")
+        if self._cut_short:  # a lockstep call Ctrl-C cut short: its answers first
+            self._catch_up()
         busy = self._state[rows]
         if busy.any():
             i = int(rows[np.flatnonzero(busy)[0]])
@@ -514,18 +536,19 @@ class CPUVectorEnv:
         return rows
 
     def _read_answers(self, positions: list[int]) -> None:
-        """Reads the answers of the workers at ``positions`` (whatever each was sent); a worker that
-        failed closes the env."""
+        """Reads the answers of the workers at ``positions`` (whatever each was sent; a wait found them in
+        their pipes), read and noted arrived with Ctrl-C held; a worker that failed closes the env."""
         state, pool = self._state, self._pool
         try:
-            for i in positions:
-                if state[i] == RESETTING:
-                    pool.take_answer(i)
-                else:
-                    pool.take_done(i)
-                self._arrived[i] = True
-                self._arrival[i] = self._arrivals
-                self._arrivals += 1
+            with HELD:
+                for i in positions:
+                    if state[i] == RESETTING:
+                        pool.take_answer(i)
+                    else:
+                        pool.take_done(i)
+                    self._arrived[i] = True
+                    self._arrival[i] = self._arrivals
+                    self._arrivals += 1
         except (EOFError, OSError, WorkerFailure) as err:
             raise self._worker_failed("receive", err) from getattr(err, "error", None) or err
 
@@ -594,6 +617,8 @@ class CPUVectorEnv:
         taken = np.flatnonzero(arrived & mine)
         if taken.size > limit:  # the first to arrive
             taken = np.sort(taken[np.argsort(self._arrival[taken], kind="stable")[:limit]])
+        # Idle first: a Ctrl-C between the two leaves an idle sub-env marked arrived, which nothing reads
+        # (a receive looks at the sub-envs with a call under way, and a send clears the mark).
         self._state[taken] = IDLE
         arrived[taken] = False
         return taken

@@ -27,6 +27,7 @@ from torchrl.envs import AsyncEnvPool, EnvBase
 from maniskill_torchrl._internal.mp import entropy_seed
 from maniskill_torchrl._internal.rows import RowStore
 from maniskill_torchrl._private import new_tensordict
+from maniskill_torchrl.engines._interrupts import HELD
 from maniskill_torchrl.engines._worker import INFO, OBS, REWARD, TERMINATED, TRUNCATED
 from maniskill_torchrl.engines.cpu_vector import CPUVectorEnv
 from maniskill_torchrl.envs.engine_env import ManiSkillEnv, ManiSkillWrapper
@@ -280,7 +281,10 @@ class ManiSkillAsyncEnvPool(AsyncEnvPool):
                 f"{self!r}: no 'action' entry in the tensordict sent to step ({sorted(tensordict.keys())}): set "
                 "td['action'] (the policy's output) first."
             )
-        with self._pool_lock:
+        # Ctrl-C after the send but before its rows are written would leave a step whose transition holds the
+        # rows of the env's step before: held till the rows are written (engines/_interrupts.py), never over
+        # the lock's wait.
+        with self._pool_lock, HELD:
             seeds = self._seeds(env_idx) if autoreset else None
             self._engine.step_send(action, env_idx, autoreset=autoreset, reset_seeds=seeds)
             self.__dict__["_epoch"] += 1  # not EnvBase's (nn.Module's) __setattr__: on the hot path

@@ -224,6 +224,7 @@ def test_a_relative_path_under_a_running_hydra_app_is_from_where_it_started(demo
     assert_tensordict_equal(rb[:], expected)
 
 
+@pytest.mark.slow
 def test_import_maniskill_torchrl_registers_the_prefix_without_importing_torchrl():
     """``import maniskill_torchrl`` registers the prefix in TorchRL's registry where TorchRL is imported (and the
     library's TorchRL modules on their import), and never imports TorchRL itself (the gym shim's workers)."""

@@ -22,6 +22,7 @@ from tensordict import TensorDict
 from torchrl.envs import StepCounter, TransformedEnv
 
 from maniskill_torchrl import AsyncPoolCollector, ManiSkillAsyncEnvPool
+from support.helpers import ENGINE_FILES, ctrl_c_after_a_length, ctrl_c_at_line, no_hang
 
 N, EPISODE = 3, 4
 PICK = dict(obs_mode="state", max_episode_steps=EPISODE)
@@ -222,3 +223,57 @@ def test_foreign_steps_between_iterations_restart_the_episodes(pool):
     for i in range(N):
         mine = batch[batch["env_index"] == i]
         assert mine["next", "truncated"][0].item() and mine["step_count"][1].item() == 0
+
+
+def test_ctrl_c_inside_the_read_of_an_answer_leaves_the_pipe_whole(pool, monkeypatch):
+    """A Ctrl-C inside ``recv_bytes``, between a worker's answer's 4-byte length and its body, comes once the
+    answer is read and noted. Before the fix the KeyboardInterrupt left the body in the pipe; the next read
+    (the collector's drain after Ctrl-C) took it for a length and waited forever for bytes no worker sends:
+    the likeliest cause of the one hang of the Ctrl-C example test (tests/examples/test_engine_interrupts.py)."""
+    pool.set_seed(0)
+    roots = pool.reset()
+    pool.async_step_and_maybe_reset_send(_zeros(roots), env_index=[0, 1, 2])
+    engine = pool._engine
+    pipe = engine._pool.pipes[engine._pool.indices.index(1)]
+    with ctrl_c_after_a_length(pipe, monkeypatch) as reads:
+        with pytest.raises(KeyboardInterrupt):
+            pool.async_step_and_maybe_reset_recv(env_index=[1])
+        transitions, _ = pool.async_step_and_maybe_reset_recv(min_get=N)  # the drain: before the fix, a hang
+    assert reads[:2] == [4, 1], reads  # the KeyboardInterrupt came after the body, not between
+    assert transitions["env_index"].tolist() == [0, 1, 2]
+    assert pool._current_step_reset == 0 and not pipe.poll(0)
+
+
+def test_ctrl_c_at_any_line_of_a_cycle_leaves_the_pool_whole(pool):
+    """A Ctrl-C at each line, in turn, of a send and a receive of every env (the pool's lines, the engine's,
+    ``multiprocessing``'s pipe reads): afterwards the drain a collector makes returns, nothing is under way and
+    no answer is left in a pipe. Before the fix, one between an answer's length and its body left the body in
+    the pipe and the drain hung (cut here by SIGALRM); one between a read and its bookkeeping left an answer
+    read but not noted, which a drain waits for forever."""
+    engine = pool._engine
+    files = (*ENGINE_FILES, "maniskill_torchrl/envs/async_pool.py")
+    sent = TensorDict({"action": torch.zeros(N, 8)}, [N])
+    pool.set_seed(0)
+    pool.reset()
+
+    def cycle() -> None:
+        pool.async_step_and_maybe_reset_send(sent.clone(), env_index=list(range(N)))
+        pool.async_step_and_maybe_reset_recv(min_get=N)
+
+    cycle()  # the first send makes the pool's rows
+    with ctrl_c_at_line(0, files) as counted:
+        cycle()
+    lines, interrupted = counted[0], 0
+    for line in range(1, lines + 1):
+        with no_hang(10.0):
+            with ctrl_c_at_line(line, files):
+                try:
+                    cycle()
+                except KeyboardInterrupt:
+                    interrupted += 1
+            if pool._current_step_reset:  # AsyncPoolCollector's drain after Ctrl-C
+                pool.async_step_and_maybe_reset_recv(min_get=pool._current_step_reset)
+        left = [i for i, pipe in enumerate(engine._pool.pipes) if pipe.poll(0)]
+        assert not engine.pending and not left, f"a Ctrl-C at line {line} of {lines}: {engine.pending}, pipes {left}"
+    assert interrupted >= lines - 50, (interrupted, lines)  # a cycle's lines vary a little (what select finds)
+    cycle()

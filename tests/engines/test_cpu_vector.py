@@ -31,7 +31,7 @@ from maniskill_torchrl import (
     ManiSkillEnv,
     ManiSkillWrapper,
 )
-from support.helpers import make_gym_env, random_actions, start
+from support.helpers import ctrl_c_after_a_length, ctrl_c_at_line, make_gym_env, no_hang, random_actions, start
 
 N = 2
 CART = dict(obs_mode="state", max_episode_steps=30, sim_backend="cpu")  # random actions fail it after ~20 steps
@@ -163,6 +163,103 @@ def test_without_a_seed_every_sub_env_plays_its_own_episode(pick_vec):
 
 def test_check_env_specs(pick_vec):
     check_env_specs(pick_vec, seed=0)
+
+
+def test_ctrl_c_inside_a_lockstep_read_comes_after_the_read(cartpole, monkeypatch):
+    """A Ctrl-C inside the read of a worker's answer to a lockstep step (between its length and its body)
+    comes once that answer is read whole. Before the fix it came mid-read, and the read of the answers
+    owed took the body left in the pipe for a length: a hang."""
+    engine = cartpole._env
+    td = cartpole.reset().set("action", torch.zeros(N, 1))
+    with ctrl_c_after_a_length(engine._pool.pipes[0], monkeypatch) as reads:
+        with pytest.raises(KeyboardInterrupt):
+            cartpole.step(td)
+        out = cartpole.step(td)  # in step: the next step reads its own answers
+    assert reads[:2] == [4, 1], reads
+    assert out["next", "observation"].shape[0] == N
+    assert not engine._pool.owed.any() and not any(pipe.poll(0) for pipe in engine._pool.pipes)
+
+
+def test_ctrl_c_at_any_line_of_a_lockstep_step_leaves_the_engine_in_step(cartpole):
+    """A Ctrl-C at each line, in turn, of a lockstep step (the engine's files and ``multiprocessing``'s pipe
+    reads): a ``KeyboardInterrupt`` every time, at once (no wait for a worker is held), and the next step
+    reads its own answers: those the cut step left owed are read first, nothing is left in a pipe and no
+    read hangs. Before the fix, a Ctrl-C between an answer's length and its body left the body in the pipe
+    and the next read took it for a length: a hang, cut here by SIGALRM; one in the sends, or between the
+    sends and the wait, left answers the next step took for its own."""
+    engine = cartpole._env
+    action = torch.zeros(N, 1)
+    engine.reset(seed=0)
+    with ctrl_c_at_line(0) as counted:
+        engine.step(action)
+    lines, interrupted = counted[0], 0
+    for line in range(1, lines + 1):
+        if line % 20 == 0:
+            engine.reset(seed=line)
+        with no_hang(10.0):
+            with ctrl_c_at_line(line) as ran:
+                try:
+                    engine.step(action)
+                except KeyboardInterrupt:
+                    interrupted += 1
+                else:  # a step's lines vary a little (what each select finds): this one ended before the line
+                    assert ran[0] < line, f"a Ctrl-C at line {line} of {lines} was lost"
+                    lines = min(lines, ran[0])
+            engine.step(action)
+        left = [i for i, pipe in enumerate(engine._pool.pipes) if pipe.poll(0)]
+        assert not left and not engine._pool.owed.any(), (
+            f"a Ctrl-C at line {line} of {lines} left answers in the pipes of workers {left}"
+        )
+    assert interrupted >= lines
+
+
+def test_held_ctrl_c_comes_when_the_block_ends():
+    """``engines/_interrupts.HELD``: a SIGINT inside the block is the handler's at its end (the outermost
+    block's), once; a second one at once; the handler that was there is back after; nothing changes for
+    ``SIG_IGN`` or in another thread."""
+    import threading
+
+    from maniskill_torchrl.engines._interrupts import HELD
+
+    got: list[int] = []
+    old = signal.signal(signal.SIGINT, lambda signum, frame: got.append(signum))
+    try:
+        mine = signal.getsignal(signal.SIGINT)
+        with HELD:
+            with HELD:
+                signal.raise_signal(signal.SIGINT)
+            assert got == []  # the inner block's end is not the hold's
+        assert got == [signal.SIGINT] and signal.getsignal(signal.SIGINT) is mine
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        after = []
+        with pytest.raises(KeyboardInterrupt):
+            with HELD:
+                signal.raise_signal(signal.SIGINT)
+                after.append("held")
+                signal.raise_signal(signal.SIGINT)  # a second Ctrl-C: at once
+                after.append("not reached")
+        assert after == ["held"] and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        with pytest.raises(KeyboardInterrupt):
+            with HELD:  # held again
+                signal.raise_signal(signal.SIGINT)
+                after.append("held again")
+        assert after == ["held", "held again"]
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        with HELD:
+            assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        seen = []
+
+        def elsewhere():
+            with HELD:
+                seen.append(signal.getsignal(signal.SIGINT))
+
+        thread = threading.Thread(target=elsewhere)
+        thread.start()
+        thread.join()
+        assert seen == [signal.default_int_handler]
+    finally:
+        signal.signal(signal.SIGINT, old)
 
 
 def test_each_sub_env_equals_a_raw_env(cartpole):

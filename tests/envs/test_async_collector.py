@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 
+import pytest
 import torch
 from tensordict.nn import TensorDictModule
 from torchrl.collectors import AsyncBatchedCollector
@@ -29,6 +30,7 @@ def make_policy(obs_dim: int, act_dim: int):
     return TensorDictModule(net, in_keys=["observation"], out_keys=["action"])
 
 
+@pytest.mark.slow
 def test_transitions_chain_per_env():
     """Batches until each env has made two episodes' worth of transitions (one env may start
     seconds after the other on a loaded machine: the collector does not wait for it)."""

@@ -564,6 +564,7 @@ def test_collector(envs):
         _check_batch(batch, frames)
 
 
+@pytest.mark.slow
 def test_multi_sync_collector(envs):
     """The env in a MultiSyncCollector's worker process: one worker (each spawned one imports
     torch, TorchRL and ManiSkill), several episodes per batch."""

@@ -171,6 +171,7 @@ def test_vulkan_loaded_after_a_maniskill_env() -> None:
     assert _mp.vulkan_loaded()
 
 
+@pytest.mark.slow
 def test_importing_the_library_changes_no_start_method() -> None:
     """A drop-in changes one import and nothing else: the gym shim, as ManiSkill's module, and the
     package leave the global start method unset (``None``) and do not import TorchRL (whose own
@@ -225,6 +226,7 @@ def _maniskill_worker():
     return TransformedEnv(ManiSkillEnv("PickCube-v1", obs_mode="state", max_episode_steps=5), CPUUnbatch())
 
 
+@pytest.mark.slow
 def test_maniskill_workers_match_serial_env() -> None:
     """Two ManiSkill workers give what the same two envs give in-process (SerialEnv), bit for bit."""
     env = ManiSkillParallelEnv(2, _maniskill_worker)

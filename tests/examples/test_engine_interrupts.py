@@ -132,8 +132,8 @@ def test_ctrl_c_is_a_keyboard_interrupt_and_leaves_nothing(tmp_path):
 
 
 def test_ctrl_c_leaves_the_lockstep_engine_in_step(tmp_path):
-    """Ctrl-C in the middle of a lockstep step of ``ManiSkillEnv(num_envs=3)``'s workers: the wait reads
-    the answers it owes (``WorkerPool._settle``), so the next seeded episode is a fresh env's, to the bit,
-    instead of reading the interrupted step's answers as its own."""
+    """Ctrl-C in the middle of a lockstep step of ``ManiSkillEnv(num_envs=3)``'s workers: the next call
+    reads the answers the cut step left owed (``WorkerPool.catch_up``), so the next seeded episode is a
+    fresh env's, to the bit, instead of reading the interrupted step's answers as its own."""
     printed, _ = _interrupted(tmp_path, LOCKSTEP_CTRL_C)
     assert "in lockstep" in printed and "closed" in printed, printed

@@ -51,6 +51,7 @@ def test_import_without_maniskill_says_how_to_install(statement):
     assert "During handling of the above exception" not in child.stderr  # one error, not a chain
 
 
+@pytest.mark.slow
 def test_import_with_maniskill_succeeds():
     child = subprocess.run(
         [sys.executable, "-c", "import maniskill_torchrl.wrappers, maniskill_torchrl as m; print(m.__version__)"],

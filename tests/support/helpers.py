@@ -14,11 +14,14 @@ from __future__ import annotations
 
 import gc
 import os
+import signal
 import struct
 import subprocess
 import sys
 import tempfile
-from collections.abc import Iterable, Sequence
+import threading
+from collections.abc import Iterable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 from unittest import mock
@@ -285,3 +288,89 @@ def alone_where_cuda(request: Any) -> bool:
     _check(proc)
     assert "1 passed" in proc.stdout, proc.stdout[-3000:]
     return True
+
+
+class ReadHung(Exception):
+    """A read that did not return (not an OSError: the engine takes those for a dead worker)."""
+
+
+# Where the engine's pipes are read and written, and its bookkeeping kept: the files :func:`ctrl_c_at_line` counts.
+ENGINE_FILES = (
+    "maniskill_torchrl/engines/cpu_vector.py",
+    "maniskill_torchrl/engines/_pool.py",
+    "maniskill_torchrl/engines/_interrupts.py",
+    "multiprocessing/connection.py",
+)
+
+
+@contextmanager
+def ctrl_c_at_line(line: int, files: Sequence[str] = ENGINE_FILES) -> Iterator[list[int]]:
+    """SIGINT raised at the ``line``-th line run (1 the first) in a module whose file ends with one of ``files``
+    (this thread's lines), as a terminal's Ctrl-C lands: between two bytecodes, the handler at once (Python's
+    default one, set for the block: ``KeyboardInterrupt`` at that line, unless the engine holds it). Yields a
+    one-item list, the lines counted so far. ``line=0``: none raised (to count a call's lines)."""
+    if threading.current_thread() is not threading.main_thread():
+        pytest.skip("signal handlers are the main thread's")
+    counted = [0]
+    ends = tuple(files)
+
+    def local(frame: Any, event: str, arg: Any) -> Any:
+        if event == "line":
+            counted[0] += 1
+            if counted[0] == line:
+                signal.raise_signal(signal.SIGINT)  # runs the handler before it returns
+        return local
+
+    def calls(frame: Any, event: str, arg: Any) -> Any:
+        return local if frame.f_code.co_filename.endswith(ends) else None
+
+    old, tracer = signal.signal(signal.SIGINT, signal.default_int_handler), sys.gettrace()
+    sys.settrace(calls)
+    try:
+        yield counted
+    finally:
+        sys.settrace(tracer)
+        signal.signal(signal.SIGINT, old)
+
+
+@contextmanager
+def no_hang(seconds: float = 20.0, what: str = "a read after Ctrl-C hangs: a message was cut in two") -> Iterator[None]:
+    """The block is cut by SIGALRM after ``seconds`` (:class:`ReadHung`): a hang fails the test, never blocks it."""
+
+    def hung(signum: int, frame: Any) -> None:
+        raise ReadHung(what)
+
+    old = signal.signal(signal.SIGALRM, hung)
+    signal.setitimer(signal.ITIMER_REAL, seconds)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, old)
+
+
+@contextmanager
+def ctrl_c_after_a_length(pipe: Any, monkeypatch: pytest.MonkeyPatch) -> Iterator[list[int]]:
+    """SIGINT raised inside ``pipe.recv_bytes()``, right after a message's 4-byte length and before its body
+    (where a terminal's Ctrl-C can land), once; yields the sizes ``Connection._recv`` read. Python's default
+    SIGINT handler is set for the block; a read that hangs is cut by SIGALRM after 20 s (:class:`ReadHung`)."""
+    if threading.current_thread() is not threading.main_thread():
+        pytest.skip("signal handlers are the main thread's")
+    reads: list[int] = []
+    real = pipe._recv
+
+    def recv(size: int, read: Any = None) -> Any:
+        out = real(size)
+        reads.append(size)
+        if len(reads) == 1:
+            signal.raise_signal(signal.SIGINT)
+        return out
+
+    monkeypatch.setattr(pipe, "_recv", recv, raising=False)
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with no_hang():
+            yield reads
+    finally:
+        signal.signal(signal.SIGINT, old)
+        monkeypatch.setattr(pipe, "_recv", real, raising=False)

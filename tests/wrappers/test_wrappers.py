@@ -372,6 +372,7 @@ def test_sync_vector_env():
             v.close()
 
 
+@pytest.mark.slow
 def test_async_vector_env_forkserver():
     """Thunks pickle and run in forkserver workers (the default fork context hangs with SAPIEN).
     The workers import the wrapper's module when unpickling the thunk, which registers the tasks.
