@@ -15,6 +15,8 @@ from pathlib import Path
 
 import pytest
 
+from support.helpers import terminal_sigint
+
 REPO = Path(__file__).resolve().parents[2]
 
 
@@ -93,7 +95,13 @@ def _interrupted(tmp_path, script_text: str) -> tuple[str, str]:
     env = dict(os.environ, PYTHONUNBUFFERED="1", PYTHONPATH=str(REPO))
     with open(out, "w") as stdout, open(err, "w") as stderr:
         proc = subprocess.Popen(
-            [sys.executable, str(script)], cwd=tmp_path, env=env, stdout=stdout, stderr=stderr, start_new_session=True
+            [sys.executable, str(script)],
+            cwd=tmp_path,
+            env=env,
+            stdout=stdout,
+            stderr=stderr,
+            start_new_session=True,
+            preexec_fn=terminal_sigint,
         )
     try:
         deadline = time.monotonic() + 240

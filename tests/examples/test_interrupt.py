@@ -16,6 +16,8 @@ from pathlib import Path
 import pytest
 import torch
 
+from support.helpers import terminal_sigint
+
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 
 RUNS = {
@@ -47,7 +49,10 @@ def stopped(tmp_path_factory):
         cmd = [sys.executable, str(EXAMPLES / script[0]), *script[1:], *extra, "--out", str(folder / "out")]
         log = (folder / "log.txt").open("w")
         env = dict(os.environ, PYTHONUNBUFFERED="1")
-        procs[name] = (subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=folder, env=env), folder)
+        proc = subprocess.Popen(
+            cmd, stdout=log, stderr=subprocess.STDOUT, cwd=folder, env=env, preexec_fn=terminal_sigint
+        )
+        procs[name] = (proc, folder)
     results, sent, deadline = {}, set(), time.monotonic() + 240
     while len(results) < len(procs) and time.monotonic() < deadline:
         for name, (proc, folder) in procs.items():
@@ -138,7 +143,15 @@ def stopped_plain(tmp_path_factory):
         cmd = [sys.executable, str(EXAMPLES / script[0]), *script[1:]]
         log = (folder / "log.txt").open("w")
         env = dict(os.environ, PYTHONUNBUFFERED="1")
-        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=folder, env=env, start_new_session=True)
+        proc = subprocess.Popen(
+            cmd,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            cwd=folder,
+            env=env,
+            start_new_session=True,
+            preexec_fn=terminal_sigint,
+        )
         procs[name] = (proc, folder, time.monotonic())
     results, seen, sent, deadline = {}, {}, set(), time.monotonic() + 300
     while len(results) < len(procs) and time.monotonic() < deadline:

@@ -27,6 +27,8 @@ from pathlib import Path
 import pytest
 import torch
 
+from support.helpers import terminal_sigint
+
 ray = pytest.importorskip("ray", reason="ray is not installed (pip install -e '.[distributed]')")
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -106,7 +108,13 @@ def test_a_stopped_script_prints_its_frames_shuts_ray_down_and_exits_conventiona
     with log.open("w") as out:
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         proc = subprocess.Popen(
-            cmd, stdout=out, stderr=subprocess.STDOUT, cwd=tmp_path, env=env, start_new_session=True
+            cmd,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            cwd=tmp_path,
+            env=env,
+            start_new_session=True,
+            preexec_fn=terminal_sigint,
         )
     try:
         deadline = time.monotonic() + 240

@@ -374,3 +374,11 @@ def ctrl_c_after_a_length(pipe: Any, monkeypatch: pytest.MonkeyPatch) -> Iterato
     finally:
         signal.signal(signal.SIGINT, old)
         monkeypatch.setattr(pipe, "_recv", real, raising=False)
+
+
+def terminal_sigint() -> None:
+    """``preexec_fn`` of a process a test will Ctrl-C: SIGINT at its default, as a terminal starts a process.
+    A script's background job (``cmd &`` with no job control, as a CI runner or a shell script may start the
+    suite) inherits SIGINT ignored, and Python then never raises ``KeyboardInterrupt``: the test's Ctrl-C
+    would reach nothing, and the test would fail for a reason of the runner's."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
