@@ -150,7 +150,8 @@ class WorkerPool:
             ready = [key.data for key, _ in select(None)]
             with HELD:
                 for i in ready:
-                    if i not in left:
+                    if i not in left:  # not asked: a worker that died (EOFError, read), or one out of step
+                        pipes[i].recv_bytes()
                         raise WorkerFailure(
                             f"the worker of sub-env {self.indices[i]} sent an answer nobody waits for",
                             "the engine is out of step with its workers (a bug: please report it)",

@@ -521,6 +521,21 @@ def test_dead_worker_raises_instead_of_hanging(pick):
     env.close()  # closing again is harmless
 
 
+def test_a_worker_dead_outside_a_partial_reset_is_said_to_have_died():
+    """A lockstep call to some workers (a partial reset) while another worker is dead: the wait sees the dead
+    one's closed pipe and says it died (not that the engine is out of step with its workers)."""
+    engine = CPUVectorEnv("MS-CartpoleBalance-v1", 3, in_process=False, **CART)
+    try:
+        engine.reset(seed=0)
+        worker = engine._pool.processes[2]
+        os.kill(worker.pid, signal.SIGKILL)
+        worker.join(5)
+        with pytest.raises(RuntimeError, match=r"worker\(s\) of sub-env\(s\) \[2\] died"):
+            engine.reset(seed=1, options={"env_idx": [0]})
+    finally:
+        engine.close()
+
+
 def test_script_without_main_guard_gets_a_clear_error(no_guard_script) -> None:
     """forkserver workers import the main script again: without a guard they die while starting."""
     proc = no_guard_script.result(check=False)
