@@ -161,10 +161,10 @@ class WorkerPool:
                     del left[i]
         return got
 
-    def catch_up(self, positions: Any = None) -> None:
-        """Reads and drops the answers owed by the workers at ``positions`` (all: None), left by a call
-        that Ctrl-C cut short (the workers ignore SIGINT and finish their call)."""
-        owed = np.flatnonzero(self.owed).tolist() if positions is None else [i for i in positions if self.owed[i]]
+    def catch_up(self) -> None:
+        """Reads and drops the answers still owed, left by a call that Ctrl-C cut short (the workers
+        ignore SIGINT and finish their call)."""
+        owed = np.flatnonzero(self.owed).tolist()
         if owed:
             self._gather(owed)
 
