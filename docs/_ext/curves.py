@@ -3,7 +3,7 @@ built (``builder-inited``), into ``docs/_generated/curves/`` (git-ignored; no im
 
 - the learning curves: ``benchmarks/ppo/pullcube_cpu_30min.csv`` (PPO, PullCube-v1)
   and ``pullcube_ppotrainer.csv`` (TorchRL's PPOTrainer), ``benchmarks/sac/pushcube_ee_b256.csv`` and
-  ``pushcube_sactrainer.csv`` (SAC, PushCube-v1), ``benchmarks/rlpd/pickcube_offline_to_online.csv``
+  ``pushcube_sactrainer.csv`` (SAC, PushCube-v1), ``benchmarks/rlpd/pickcube_offline_to_online{,_auto_entropy}.csv``
   (RLPD through TorchRL's OfflineToOnlineTrainer, PickCube-v1),
   ``benchmarks/bc/mlp_1000demos.csv`` (behaviour cloning). They are drawn by ``benchmarks/plot_ppo.py``
   and ``benchmarks/plot_runs.py``, the scripts that plot a run's ``metrics.jsonl``: each CSV row becomes
@@ -169,7 +169,10 @@ def draw_ppo_trainer(out: Path, tmp: Path) -> Path:
 def draw_rlpd(out: Path, tmp: Path) -> Path:
     from benchmarks import plot_style
 
-    runs = [("TorchRL's OfflineToOnlineTrainer", "rlpd/pickcube_offline_to_online")]
+    runs = [
+        ("OfflineToOnlineTrainer, target entropy -4 (the YAML's)", "rlpd/pickcube_offline_to_online"),
+        ('OfflineToOnlineTrainer, target entropy -8 ("auto")', "rlpd/pickcube_offline_to_online_auto_entropy"),
+    ]
     title = "RLPD on PickCube-v1 (sparse reward, 200 demos), CPU sim, 2 cores"
     fig = _draw_rl_runs(out, tmp, "rlpd_pickcube.png", runs, title)
     # ManiSkill's RLPD README: PickCube-v1 in "around 50K" env samples with its sample-efficient config
