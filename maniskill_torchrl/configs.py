@@ -22,6 +22,7 @@ group              name                         node
 ``hook``           ``log_episode_metrics``      :class:`LogEpisodeMetricsConfig`
 ``hook``           ``keep_random_frames``       :class:`KeepRandomFramesConfig`
 ``network``        ``ppo_mlp``                  :class:`PPOMLPConfig`
+``loss``           ``sac_backup_entropy``       :class:`SACBackupEntropyLossConfig`
 =================  ===========================  ==========================================
 
 and the ``maniskill:`` prefix of :func:`torchrl.data.datasets.load_dataset`. It needs
@@ -60,6 +61,7 @@ from torchrl.trainers.algorithms.configs.data import ReplayBufferBaseConfig  # n
 from torchrl.trainers.algorithms.configs.envs_libs import EnvLibsConfig  # noqa: E402
 from torchrl.trainers.algorithms.configs.hooks import HookConfig  # noqa: E402
 from torchrl.trainers.algorithms.configs.modules import MLPConfig  # noqa: E402
+from torchrl.trainers.algorithms.configs.objectives import SACLossConfig  # noqa: E402
 from torchrl.trainers.algorithms.configs.transforms import TransformConfig  # noqa: E402
 
 import maniskill_torchrl.data  # noqa: E402, F401  (registers the maniskill: dataset prefix)
@@ -77,6 +79,7 @@ __all__ = [
     "ManiSkillExperienceReplayConfig",
     "OfflineToOnlineReplayBufferConfig",
     "PPOMLPConfig",
+    "SACBackupEntropyLossConfig",
     "SparseRewardConfig",
     "SuccessRateEvaluationConfig",
     "make_maniskill_env",
@@ -304,6 +307,38 @@ def _make_ppo_mlp(
     return torch.nn.Sequential(mlp, scale)
 
 
+# ----------------------------------------------------------------------------- losses
+@dataclass
+class SACBackupEntropyLossConfig(SACLossConfig):
+    """TorchRL's ``loss: sac`` node with ``backup_entropy`` (:class:`maniskill_torchrl.objectives.SACLoss`):
+    ``false`` leaves the entropy term out of the critic's target, as ManiSkill's RLPD baseline does.
+    Continuous actions only (TorchRL 0.14.1's ``DiscreteSACLoss`` has no such switch either)."""
+
+    backup_entropy: bool = True
+    _target_: str = "maniskill_torchrl.configs._make_sac_backup_entropy_loss"
+
+
+def _make_sac_backup_entropy_loss(
+    *, backup_entropy: bool = True, discrete: bool = False, gamma: float | None = None, **kwargs: Any
+) -> Any:
+    from maniskill_torchrl.objectives import SACLoss
+
+    if discrete:
+        raise ValueError(
+            "loss: sac_backup_entropy is the continuous SACLoss; for discrete actions use TorchRL's `loss: sac` "
+            "node with discrete: true"
+        )
+    for key in ("actor_network", "qvalue_network", "value_network"):  # config objects, as TorchRL's maker
+        if hasattr(kwargs.get(key), "_target_"):
+            kwargs[key] = kwargs[key]()
+    for key in ("action_space", "num_actions", "target_entropy_weight"):  # DiscreteSACLoss's only
+        kwargs.pop(key, None)
+    loss = SACLoss(backup_entropy=backup_entropy, **kwargs)
+    if gamma is not None:
+        loss.make_value_estimator(gamma=gamma)
+    return loss
+
+
 # ----------------------------------------------------------------------------- demonstrations
 @dataclass
 class ManiSkillExperienceReplayConfig(ReplayBufferBaseConfig):
@@ -449,6 +484,7 @@ def _register_configs() -> None:
     cs.store(group="hook", name="log_episode_metrics", node=LogEpisodeMetricsConfig)
     cs.store(group="hook", name="keep_random_frames", node=KeepRandomFramesConfig)
     cs.store(group="network", name="ppo_mlp", node=PPOMLPConfig)
+    cs.store(group="loss", name="sac_backup_entropy", node=SACBackupEntropyLossConfig)
 
 
 _register_configs()
