@@ -34,6 +34,7 @@ REGISTERED = {
     ("transform", "cpu_unbatch"): configs.CPUUnbatchConfig,
     ("replay_buffer", "maniskill"): configs.ManiSkillExperienceReplayConfig,
     ("replay_buffer", "offline_to_online"): configs.OfflineToOnlineReplayBufferConfig,
+    ("loss", "sac_backup_entropy"): configs.SACBackupEntropyLossConfig,
 }
 
 
@@ -259,9 +260,9 @@ def test_hydra_plugin_registers_the_nodes_only_beside_torchrls_configs(imports, 
     assert out.stdout.split() == ["True", str(registered), str(registered)], out.stderr[-3000:]
 
 
-def test_rlpd_yaml_takes_maniskills_target_entropy():
+def test_rlpd_yaml_takes_maniskills_target_entropy_and_backup():
     """ManiSkill's RLPD sets the target entropy to -act_dim / 2 (TorchRL's "auto": -act_dim): PickCube-v1's
-    pd_joint_delta_pos has 8 action dims."""
+    pd_joint_delta_pos has 8 action dims; and its critic's target leaves out the entropy term (backup_entropy)."""
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
@@ -272,3 +273,5 @@ def test_rlpd_yaml_takes_maniskills_target_entropy():
     assert cfg.training_env.base_env.control_mode == "pd_joint_delta_pos"
     env = ManiSkillEnv(TASK, obs_mode="state", control_mode="pd_joint_delta_pos", batch_size=[])
     assert cfg.loss.target_entropy == -env.action_spec.shape[-1] / 2 == -4.0
+    assert cfg.loss.backup_entropy is False
+    assert cfg.loss._target_ == configs.SACBackupEntropyLossConfig._target_

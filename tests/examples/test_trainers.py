@@ -394,6 +394,7 @@ def test_rlpd_pickcube_trains(tmp_path, monkeypatch, demo):
     buffer = trainer.replay_buffer
     assert len(buffer.offline_buffer) == 24 and len(buffer.online_buffer) == 256  # 3 demos x 8 steps
     assert buffer.offline_fraction == 0.5  # RLPD's symmetric sampling, not annealed
+    assert trainer.loss_module.backup_entropy is False  # ManiSkill's RLPD: no entropy term in the critic's target
     batch = buffer.sample(64)
     assert "env_states" not in batch.keys() and "index" not in batch.keys()
     # ManiSkill's sparse reward on both halves (the demos were recorded with the dense one)

@@ -38,7 +38,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("envs", ("envs", "parallel", "async_collector")),
     ("transforms and the gym shim", ("transforms", "wrappers")),
     ("data and testing", ("data", "testing")),
-    ("recipe", ("pipeline", "configs", "evaluation", "trainer_hooks")),
+    ("recipe", ("pipeline", "configs", "evaluation", "trainer_hooks", "objectives")),
     ("CLI", ("cli", "__main__")),
 ]
 ADAPTER = PKG_DIR / "envs" / "maniskill.py"
