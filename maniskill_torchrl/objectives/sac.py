@@ -19,8 +19,9 @@ class SACLoss(_TorchRLSACLoss):
     ``Q(s', a')`` alone: with a sparse 0/1 reward and alpha learnt from 1.0, the entropy term outweighs
     the reward in the target for most of a run. The actor and alpha losses are TorchRL's either way.
 
+    Every argument but ``backup_entropy`` is :class:`torchrl.objectives.SACLoss`'s.
+
     Args:
-        *args, **kwargs: :class:`torchrl.objectives.SACLoss`'s.
         backup_entropy: ``True`` (default): TorchRL's target. ``False``: the target without the entropy term.
 
     Example:
