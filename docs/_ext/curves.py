@@ -3,7 +3,8 @@ built (``builder-inited``), into ``docs/_generated/curves/`` (git-ignored; no im
 
 - the learning curves: ``benchmarks/ppo/pullcube_cpu_30min.csv`` (PPO, PullCube-v1)
   and ``pullcube_ppotrainer.csv`` (TorchRL's PPOTrainer), ``benchmarks/sac/pushcube_ee_b256.csv`` and
-  ``pushcube_sactrainer.csv`` (SAC, PushCube-v1), ``benchmarks/rlpd/pickcube_offline_to_online{,_auto_entropy}.csv``
+  ``pushcube_sactrainer.csv`` (SAC, PushCube-v1),
+  ``benchmarks/rlpd/pickcube_offline_to_online{,_backup_entropy,_auto_entropy}.csv``
   (RLPD through TorchRL's OfflineToOnlineTrainer, PickCube-v1),
   ``benchmarks/bc/mlp_1000demos.csv`` (behaviour cloning). They are drawn by ``benchmarks/plot_ppo.py``
   and ``benchmarks/plot_runs.py``, the scripts that plot a run's ``metrics.jsonl``: each CSV row becomes
@@ -170,8 +171,9 @@ def draw_rlpd(out: Path, tmp: Path) -> Path:
     from benchmarks import plot_style
 
     runs = [
-        ("OfflineToOnlineTrainer, target entropy -4 (the YAML's)", "rlpd/pickcube_offline_to_online"),
-        ('OfflineToOnlineTrainer, target entropy -8 ("auto")', "rlpd/pickcube_offline_to_online_auto_entropy"),
+        ("target entropy -4, no entropy backup (the YAML's)", "rlpd/pickcube_offline_to_online"),
+        ("target entropy -4, entropy backed up", "rlpd/pickcube_offline_to_online_backup_entropy"),
+        ('target entropy -8 ("auto"), entropy backed up', "rlpd/pickcube_offline_to_online_auto_entropy"),
     ]
     title = "RLPD on PickCube-v1 (sparse reward, 200 demos), CPU sim, 2 cores"
     fig = _draw_rl_runs(out, tmp, "rlpd_pickcube.png", runs, title)
